@@ -1,0 +1,62 @@
+#!/usr/bin/env bash
+# Idempotent setup for a fresh Debian/Ubuntu machine: system packages (when root),
+# the Python virtual environment and the frontend's npm packages. Each step is
+# skipped when what it installs is already there and unchanged.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+log() { printf '\033[1m[setup]\033[0m %s\n' "$*"; }
+
+# --- Debian packages -------------------------------------------------------
+apt_wanted=()
+command -v redis-server >/dev/null || apt_wanted+=(redis-server)
+[ -x /usr/bin/chromium ] || apt_wanted+=(chromium)
+dpkg -s libusb-1.0-0 >/dev/null 2>&1 || apt_wanted+=(libusb-1.0-0)   # open3d imports it
+dpkg -s libgl1 >/dev/null 2>&1 || apt_wanted+=(libgl1 libgomp1)        # open3d's shared libs
+command -v docker-compose >/dev/null || docker compose version >/dev/null 2>&1 || apt_wanted+=(docker-compose)
+command -v psql >/dev/null || apt_wanted+=(postgresql-client)
+if [ ${#apt_wanted[@]} -gt 0 ]; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    log "installing Debian packages: ${apt_wanted[*]}"
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -qq
+    apt-get install -y -qq --no-install-recommends "${apt_wanted[@]}" >/dev/null
+  else
+    log "WARNING: not root; please install: ${apt_wanted[*]}"
+  fi
+fi
+
+# --- Python -----------------------------------------------------------------
+PY=${PYTHON:-python3}
+if [ ! -x .venv/bin/python ]; then
+  log "creating .venv"
+  "$PY" -m venv .venv
+fi
+stamp=.venv/.installed-$(sha256sum pyproject.toml | cut -c1-16)
+if [ ! -f "$stamp" ]; then
+  log "installing Python packages (pyproject.toml changed or first run)"
+  .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade "pip==25.3"
+  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[all]"
+  rm -f .venv/.installed-*
+  touch "$stamp"
+fi
+
+# --- Node (frontend) ----------------------------------------------------------
+if [ -f frontend/package.json ]; then
+  lockhash=$(cat frontend/package.json frontend/package-lock.json 2>/dev/null | sha256sum | cut -c1-16)
+  if [ ! -f "frontend/node_modules/.installed-$lockhash" ]; then
+    log "installing npm packages"
+    if [ -f frontend/package-lock.json ]; then
+      (cd frontend && npm ci --no-audit --no-fund --loglevel=error)
+    else
+      (cd frontend && npm install --no-audit --no-fund --loglevel=error)
+    fi
+    rm -f frontend/node_modules/.installed-*
+    touch "frontend/node_modules/.installed-$lockhash"
+  fi
+  if [ ! -f frontend/dist/index.html ] || [ -n "$(find frontend/src frontend/index.html frontend/*.html frontend/vite.config.js -newer frontend/dist/index.html 2>/dev/null | head -1)" ]; then
+    log "building the frontend"
+    (cd frontend && npm run --silent build >/dev/null)
+  fi
+fi
+log "ready"

@@ -1,0 +1,1 @@
+"""Shared fixtures. Package-specific fixtures live in the conftest of each test folder."""
