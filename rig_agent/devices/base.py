@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rig_agent.patterns import Pattern, ProjectorGeometry
+
 
 class DeviceError(RuntimeError):
     """A device failed; ``str(error)`` is a plain-language message for the operator."""
@@ -79,19 +81,13 @@ class Camera(abc.ABC):
 
 
 class Projector(abc.ABC):
-    """Shows one pattern image at a time on the light source's projector."""
+    """Shows one pattern at a time on the light source's projector (see rig_agent.patterns)."""
 
-    width: int
-    height: int
-    bit_depth: int
+    geometry: ProjectorGeometry
 
     @abc.abstractmethod
-    def show(self, image: np.ndarray, *, description: str) -> None:
-        """Display ``image`` (height, width) of integer levels; ``description`` names it in logs."""
-
-    @abc.abstractmethod
-    def blank(self) -> None:
-        """Show black (no light), e.g. for dark frames."""
+    def show(self, pattern: Pattern, *, azimuth_deg: float) -> None:
+        """Display ``pattern`` for a source at ``azimuth_deg`` (fringes vary along u)."""
 
     @abc.abstractmethod
     def close(self) -> None:
