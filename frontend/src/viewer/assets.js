@@ -1,0 +1,269 @@
+/**
+ * Loading a model version's assets into GPU-ready three.js objects, with byte progress, and
+ * disposing all of them again.
+ *
+ * Asset names are those of the API's `assets` map (GET /api/v1/models/{id}): `model.glb`
+ * (decimated mesh, mm, scan frame), and image-grid textures — `normals.png` (object-space
+ * normals, RGB = (n+1)/2), `albedo.png` (sRGB), `curvature*.png` (signed mean curvature, grey
+ * 128 = 0), `accessibility.png` (0 = enclosed … 255 = open) — and `quality/*.npy` (float32 maps).
+ * Image-grid textures are sampled at v = (r + 0.5)/H: row 0 of the image at v ≈ 0, which is
+ * how an ImageBitmap uploads (no flip), and how glTF stores texture coordinates.
+ *
+ * The mesh, normals and albedo load at once; the other maps on first use (`ensure`).
+ */
+import * as THREE from 'three';
+import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+import { mergeGeometries } from 'three/addons/utils/BufferGeometryUtils.js';
+import { parseNpy } from './npy.js';
+
+/** Extra smoothing (mip levels) offered when the worker made a single curvature map. */
+const SMOOTHED_CURVATURE_LODS = [2, 4];
+
+/** Kinds of map loaded on first use, and how to find their asset names. */
+export function classifyAssets(assets) {
+  const names = Object.keys(assets ?? {});
+  const find = (re) => names.filter((n) => re.test(n)).sort();
+  return {
+    glb: find(/(^|\/)model\.glb$/)[0] ?? find(/\.glb$/)[0] ?? null,
+    normals: find(/(^|\/)normals\.png$/)[0] ?? null,
+    albedo: find(/(^|\/)albedo\.png$/)[0] ?? null,
+    curvature: find(/(^|\/)curvature[^/]*\.png$/),
+    accessibility: find(/(^|\/)accessibility\.png$/)[0] ?? null,
+    quality: find(/(^|\/)quality[^/]*\.(npy|png)$|^quality\/[^/]+\.(npy|png)$/),
+    height: find(/(^|\/)height\.npy$/)[0] ?? null,
+    thumbnail: find(/(^|\/)thumbnail\.png$/)[0] ?? null,
+  };
+}
+
+/**
+ * Fetch a URL as an ArrayBuffer, reporting bytes as they arrive.
+ * @param {string} url
+ * @param {{signal?: AbortSignal, onBytes?: (loaded: number, total: number) => void}} options
+ */
+export async function fetchBytes(url, { signal, onBytes = () => {} } = {}) {
+  const response = await fetch(url, { signal, credentials: 'same-origin' });
+  if (!response.ok) throw new Error(`${url}: HTTP ${response.status}`);
+  const total = Number(response.headers.get('Content-Length')) || 0;
+  if (!response.body) {
+    const buf = await response.arrayBuffer();
+    onBytes(buf.byteLength, buf.byteLength);
+    return buf;
+  }
+  const reader = response.body.getReader();
+  const chunks = [];
+  let loaded = 0;
+  for (;;) {
+    const { done, value } = await reader.read();
+    if (done) break;
+    chunks.push(value);
+    loaded += value.byteLength;
+    onBytes(loaded, Math.max(total, loaded));
+  }
+  const out = new Uint8Array(loaded);
+  let offset = 0;
+  for (const c of chunks) {
+    out.set(c, offset);
+    offset += c.byteLength;
+  }
+  onBytes(loaded, loaded);
+  return out.buffer;
+}
+
+async function bytesToTexture(buffer, { srgb }) {
+  // 'none' everywhere: normals and curvature are data, not pictures; no colour management.
+  const bitmap = await createImageBitmap(new Blob([buffer]), {
+    imageOrientation: 'none',
+    premultiplyAlpha: 'none',
+    colorSpaceConversion: 'none',
+  });
+  const texture = new THREE.Texture(bitmap);
+  texture.flipY = false;
+  texture.colorSpace = srgb ? THREE.SRGBColorSpace : THREE.NoColorSpace;
+  texture.generateMipmaps = true;
+  texture.minFilter = THREE.LinearMipmapLinearFilter;
+  texture.magFilter = THREE.LinearFilter;
+  texture.wrapS = THREE.ClampToEdgeWrapping;
+  texture.wrapT = THREE.ClampToEdgeWrapping;
+  texture.needsUpdate = true;
+  return texture;
+}
+
+/**
+ * A float map (.npy, rows × cols) as a single-channel float texture plus a robust display
+ * range (2nd to 98th percentile of its finite values).
+ */
+export function npyToTexture(buffer) {
+  const { shape, data } = parseNpy(buffer);
+  if (shape.length !== 2) throw new Error(`expected a 2-D map, got shape (${shape.join(', ')})`);
+  const [rows, cols] = shape;
+  const values = Float32Array.from(data);
+  const texture = new THREE.DataTexture(values, cols, rows, THREE.RedFormat, THREE.FloatType);
+  texture.minFilter = THREE.NearestFilter;
+  texture.magFilter = THREE.NearestFilter;
+  texture.needsUpdate = true;
+  return { texture, range: robustRange(values) };
+}
+
+/** 2nd and 98th percentiles of the finite values (a subsample of at most ~100k). */
+export function robustRange(values) {
+  const step = Math.max(1, Math.floor(values.length / 100000));
+  const sample = [];
+  for (let i = 0; i < values.length; i += step) if (Number.isFinite(values[i])) sample.push(values[i]);
+  if (!sample.length) return [0, 1];
+  sample.sort((a, b) => a - b);
+  const lo = sample[Math.floor(0.02 * (sample.length - 1))];
+  const hi = sample[Math.ceil(0.98 * (sample.length - 1))];
+  return hi > lo ? [lo, hi] : [lo, lo + 1];
+}
+
+async function glbToGeometry(buffer) {
+  const gltf = await new GLTFLoader().parseAsync(buffer, '');
+  gltf.scene.updateMatrixWorld(true);
+  const geometries = [];
+  let glbAlbedo = null;
+  const junk = new Set();
+  gltf.scene.traverse((obj) => {
+    if (!obj.isMesh) return;
+    const g = obj.geometry.clone();
+    g.applyMatrix4(obj.matrixWorld);
+    for (const name of Object.keys(g.attributes)) {
+      if (!['position', 'normal', 'uv'].includes(name)) g.deleteAttribute(name);
+    }
+    if (!g.attributes.normal) g.computeVertexNormals();
+    geometries.push(g);
+    obj.geometry.dispose();
+    const mats = Array.isArray(obj.material) ? obj.material : [obj.material];
+    for (const m of mats) {
+      if (!glbAlbedo && m.map) glbAlbedo = m.map;
+      for (const v of Object.values(m)) if (v?.isTexture) junk.add(v);
+      m.dispose();
+    }
+  });
+  if (!geometries.length) throw new Error('model.glb holds no mesh');
+  junk.delete(glbAlbedo);
+  for (const t of junk) disposeTexture(t);
+  const geometry = geometries.length === 1 ? geometries[0] : mergeGeometries(geometries, false);
+  if (geometries.length > 1) for (const g of geometries) g.dispose();
+  if (!geometry) throw new Error('model.glb: its meshes have different attributes');
+  if (!geometry.attributes.uv) throw new Error('model.glb has no texture coordinates (TEXCOORD_0)');
+  return { geometry, glbAlbedo };
+}
+
+function disposeTexture(t) {
+  if (!t) return;
+  t.dispose();
+  if (typeof ImageBitmap !== 'undefined' && t.image instanceof ImageBitmap) t.image.close();
+}
+
+/**
+ * Load a model's mesh and first textures.
+ * @param {Record<string, string>} assets name → URL
+ * @param {{onProgress?: (fraction: number, label: string) => void, signal?: AbortSignal}} options
+ * @returns {Promise<object>} {geometry, normals, albedo, curvature, accessibility, quality,
+ *   names, ensure(kind), dispose()}
+ */
+export async function loadModelAssets(assets, { onProgress = () => {}, signal } = {}) {
+  const names = classifyAssets(assets);
+  if (!names.glb) throw new Error('this model version has no model.glb');
+  const progress = new Map();
+  const report = (name) => (loaded, total) => {
+    progress.set(name, [loaded, total]);
+    let l = 0;
+    let t = 0;
+    for (const [a, b] of progress.values()) {
+      l += a;
+      t += b;
+    }
+    onProgress(t ? l / t : 0, `${(l / 1e6).toFixed(1)} / ${(t / 1e6).toFixed(1)} MB`);
+  };
+  const get = (name) => fetchBytes(assets[name], { signal, onBytes: report(name) });
+
+  const out = {
+    names,
+    geometry: null,
+    normals: null,
+    albedo: null,
+    curvature: null,
+    accessibility: null,
+    quality: null,
+  };
+  const created = [];
+  const track = (t) => {
+    if (t) created.push(t);
+    return t;
+  };
+  out.dispose = () => {
+    out.geometry?.dispose();
+    for (const t of created) disposeTexture(t);
+    created.length = 0;
+  };
+
+  try {
+    const [glbBuf, normalsBuf, albedoBuf] = await Promise.all([
+      get(names.glb),
+      names.normals ? get(names.normals) : null,
+      names.albedo ? get(names.albedo) : null,
+    ]);
+    const { geometry, glbAlbedo } = await glbToGeometry(glbBuf);
+    out.geometry = geometry;
+    out.normals = normalsBuf ? track(await bytesToTexture(normalsBuf, { srgb: false })) : null;
+    if (albedoBuf) {
+      out.albedo = track(await bytesToTexture(albedoBuf, { srgb: true }));
+      disposeTexture(glbAlbedo);
+    } else {
+      out.albedo = track(glbAlbedo); // the GLB's baseColorTexture is the same albedo
+    }
+  } catch (err) {
+    out.dispose();
+    throw err;
+  }
+
+  const pending = new Map();
+  /**
+   * Load a lazily loaded kind ('curvature', 'accessibility', 'quality') once.
+   * @returns {Promise<void>}
+   */
+  out.ensure = (kind) => {
+    if (out[kind] !== null || !['curvature', 'accessibility', 'quality'].includes(kind)) {
+      return Promise.resolve();
+    }
+    if (!pending.has(kind)) {
+      pending.set(kind, loadKind(kind));
+    }
+    return pending.get(kind);
+  };
+
+  async function loadKind(kind) {
+    if (kind === 'accessibility') {
+      out.accessibility = names.accessibility
+        ? track(await bytesToTexture(await get(names.accessibility), { srgb: false }))
+        : false;
+    } else if (kind === 'curvature') {
+      const layers = [];
+      for (const name of names.curvature) {
+        const texture = track(await bytesToTexture(await get(name), { srgb: false }));
+        layers.push({ name, texture, lod: 0, label: name });
+      }
+      if (layers.length === 1) {
+        for (const lod of SMOOTHED_CURVATURE_LODS) {
+          layers.push({ ...layers[0], lod, label: `${layers[0].name}, smoothed over ${2 ** lod} px` });
+        }
+      }
+      out.curvature = layers;
+    } else if (kind === 'quality') {
+      const maps = [];
+      for (const name of names.quality) {
+        const buf = await get(name);
+        if (name.endsWith('.npy')) {
+          const { texture, range } = npyToTexture(buf);
+          maps.push({ name, texture: track(texture), range });
+        } else {
+          maps.push({ name, texture: track(await bytesToTexture(buf, { srgb: false })), range: [0, 1] });
+        }
+      }
+      out.quality = maps;
+    }
+  }
+
+  return out;
+}

@@ -1,0 +1,191 @@
+/**
+ * The viewer's one material: relighting from full-resolution OBJECT-SPACE normals
+ * (`normals.png`, RGB = (n + 1)/2 in the scan frame) on the decimated mesh, so every wedge is
+ * lit exactly whatever the mesh resolution, plus the other shading modes.
+ *
+ * Lighting (scan frame; the model sits in the world untransformed, so world = scan frame):
+ *   colour = base · (ambient + intensity · max(0, n·l)) + gloss · intensity · (n·h)^s
+ * with l from light.js (SCAN_BUNDLE.md convention) and h the Blinn half vector between l and
+ * the direction to the camera. Light is independent of the view: l is fixed in the scan frame.
+ */
+import * as THREE from 'three';
+import { SHADING_MODES } from './permalink.js';
+
+export const MODE_INDEX = Object.freeze(Object.fromEntries(SHADING_MODES.map((m, i) => [m, i])));
+
+/** Colour of fired clay for the "clay" and derived modes (linear RGB). */
+const CLAY_LINEAR = new THREE.Color().setRGB(0.78, 0.7, 0.6, THREE.SRGBColorSpace);
+
+const vertexShader = /* glsl */ `
+  out vec2 vUv;
+  out vec3 vNormalW;
+  out vec3 vPosW;
+  out float vHeightMm;
+  void main() {
+    vUv = uv;
+    vec4 world = modelMatrix * vec4(position, 1.0);
+    vPosW = world.xyz;
+    vNormalW = normalize(mat3(modelMatrix) * normal);
+    vHeightMm = -position.z; // h is measured toward the camera: z = -h
+    gl_Position = projectionMatrix * viewMatrix * world;
+  }
+`;
+
+const fragmentShader = /* glsl */ `
+  precision highp float;
+  in vec2 vUv;
+  in vec3 vNormalW;
+  in vec3 vPosW;
+  in float vHeightMm;
+
+  uniform int uMode;
+  uniform sampler2D uNormalMap;
+  uniform bool uHasNormalMap;
+  uniform sampler2D uAlbedoMap;
+  uniform bool uHasAlbedo;
+  uniform sampler2D uCurvatureMap;
+  uniform float uCurvatureLod;
+  uniform sampler2D uAccessMap;
+  uniform sampler2D uQualityMap;
+  uniform vec2 uQualityRange;
+  uniform bool uHasTexture;       // the texture the current mode needs is present
+  uniform vec2 uTexelSize;
+  uniform vec3 uLightDir;
+  uniform float uIntensity;
+  uniform float uAmbient;
+  uniform float uGloss;
+  uniform float uEmphasis;
+  uniform vec2 uHeightRange;
+  uniform vec3 uClay;
+  uniform bool uOrtho;
+  uniform vec3 uViewDirOrtho;     // direction from the scene toward an orthographic camera
+
+  vec3 objectNormal(vec2 uv, float lod) {
+    return textureLod(uNormalMap, uv, lod).xyz * 2.0 - 1.0;
+  }
+
+  // Diverging ramp for signed values t in [-1, 1]: blue (concave) - white - red (convex).
+  vec3 diverging(float t) {
+    t = clamp(t, -1.0, 1.0);
+    vec3 neg = vec3(0.230, 0.299, 0.754);
+    vec3 mid = vec3(0.865, 0.865, 0.865);
+    vec3 pos = vec3(0.706, 0.016, 0.150);
+    return t < 0.0 ? mix(mid, neg, -t) : mix(mid, pos, t);
+  }
+
+  // Perceptually ordered ramp (a 5-stop approximation of viridis) for t in [0, 1].
+  vec3 sequential(float t) {
+    t = clamp(t, 0.0, 1.0);
+    vec3 c0 = vec3(0.267, 0.005, 0.329);
+    vec3 c1 = vec3(0.231, 0.322, 0.545);
+    vec3 c2 = vec3(0.129, 0.569, 0.549);
+    vec3 c3 = vec3(0.369, 0.788, 0.384);
+    vec3 c4 = vec3(0.993, 0.906, 0.144);
+    float s = t * 4.0;
+    if (s < 1.0) return mix(c0, c1, s);
+    if (s < 2.0) return mix(c1, c2, s - 1.0);
+    if (s < 3.0) return mix(c2, c3, s - 2.0);
+    return mix(c3, c4, s - 3.0);
+  }
+
+  vec3 lit(vec3 base, vec3 n) {
+    vec3 l = normalize(uLightDir);
+    vec3 v = uOrtho ? normalize(uViewDirOrtho) : normalize(cameraPosition - vPosW);
+    float diffuse = max(dot(n, l), 0.0);
+    vec3 h = normalize(l + v);
+    float spec = diffuse > 0.0 ? pow(max(dot(n, h), 0.0), 48.0) : 0.0;
+    return base * (uAmbient + uIntensity * diffuse) + vec3(uGloss * uIntensity * spec);
+  }
+
+  void main() {
+    vec3 nObj = uHasNormalMap ? objectNormal(vUv, 0.0) : vNormalW;
+    vec3 n = normalize(mat3(modelMatrix) * nObj);
+    if (!uHasNormalMap) n = normalize(vNormalW);
+    vec3 colour;
+    if (uMode == 0) {          // natural colour
+      vec3 albedo = uHasAlbedo ? texture(uAlbedoMap, vUv).rgb : uClay;
+      colour = lit(albedo, n);
+    } else if (uMode == 1) {   // plain clay
+      colour = lit(uClay, n);
+    } else if (uMode == 2) {   // signed mean curvature, 8-bit grey 128 = 0
+      if (uHasTexture) {
+        float k = textureLod(uCurvatureMap, vUv, uCurvatureLod).r * 255.0 / 127.5 - 1.0;
+        colour = diverging(k * uEmphasis);
+      } else colour = lit(uClay, n) * 0.5;
+    } else if (uMode == 3) {   // accessibility / ambient occlusion
+      colour = uHasTexture ? uClay * texture(uAccessMap, vUv).r : lit(uClay, n) * 0.5;
+    } else if (uMode == 4) {   // relief: unsharp-masked normals (n + k (n - blur n))
+      vec3 blur = vec3(0.0);
+      if (uHasNormalMap) {
+        float radius = 12.0;
+        float lod = log2(radius) - 1.0;
+        for (int i = 0; i < 8; i++) {
+          float a = float(i) * 0.78539816;
+          vec2 off = vec2(cos(a), sin(a)) * radius * uTexelSize;
+          blur += objectNormal(vUv + off, lod);
+        }
+        blur = normalize(blur);
+        vec3 enhanced = nObj + uEmphasis * (nObj - blur);
+        n = normalize(mat3(modelMatrix) * enhanced);
+      }
+      colour = lit(uClay, n);
+    } else if (uMode == 5) {   // depth: height on a colour ramp, lit by exaggerated normals
+      float span = max(uHeightRange.y - uHeightRange.x, 1e-6);
+      float t = (vHeightMm - uHeightRange.x) / span;
+      vec3 ex = uHasNormalMap ? vec3(nObj.xy * uEmphasis, nObj.z) : nObj;
+      n = normalize(mat3(modelMatrix) * ex);
+      colour = sequential(t) * (0.35 + 0.65 * max(dot(n, normalize(uLightDir)), 0.0));
+    } else if (uMode == 6) {   // normals as stored: RGB = (n + 1) / 2
+      colour = nObj * 0.5 + 0.5;
+      colour = pow(colour, vec3(2.2)); // shown as the PNG's own values after sRGB output
+    } else {                   // quality map on a sequential ramp
+      if (uHasTexture) {
+        float q = texture(uQualityMap, vUv).r;
+        float span = max(uQualityRange.y - uQualityRange.x, 1e-20);
+        colour = q != q ? vec3(0.2) : sequential((q - uQualityRange.x) / span);
+      } else colour = lit(uClay, n) * 0.5;
+    }
+    gl_FragColor = vec4(colour, 1.0);
+    #include <colorspace_fragment>
+  }
+`;
+
+/**
+ * Create the relighting material. Textures are set later with `material.uniforms.uX.value`.
+ * @returns {THREE.ShaderMaterial}
+ */
+export function createRelightMaterial() {
+  const blank = new THREE.DataTexture(new Uint8Array([128, 128, 0, 255]), 1, 1);
+  blank.needsUpdate = true;
+  return new THREE.ShaderMaterial({
+    name: 'RelightMaterial',
+    glslVersion: THREE.GLSL3,
+    vertexShader,
+    fragmentShader,
+    side: THREE.DoubleSide,
+    uniforms: {
+      uMode: { value: 0 },
+      uNormalMap: { value: blank },
+      uHasNormalMap: { value: false },
+      uAlbedoMap: { value: blank },
+      uHasAlbedo: { value: false },
+      uCurvatureMap: { value: blank },
+      uCurvatureLod: { value: 0 },
+      uAccessMap: { value: blank },
+      uQualityMap: { value: blank },
+      uQualityRange: { value: new THREE.Vector2(0, 1) },
+      uHasTexture: { value: false },
+      uTexelSize: { value: new THREE.Vector2(1, 1) },
+      uLightDir: { value: new THREE.Vector3(0, 0, -1) },
+      uIntensity: { value: 1 },
+      uAmbient: { value: 0.15 },
+      uGloss: { value: 0 },
+      uEmphasis: { value: 2 },
+      uHeightRange: { value: new THREE.Vector2(0, 1) },
+      uClay: { value: new THREE.Vector3(CLAY_LINEAR.r, CLAY_LINEAR.g, CLAY_LINEAR.b) },
+      uOrtho: { value: true },
+      uViewDirOrtho: { value: new THREE.Vector3(0, 0, -1) },
+    },
+    userData: { blank },
+  });
+}

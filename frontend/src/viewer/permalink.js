@@ -1,0 +1,137 @@
+/**
+ * Permalinks: the viewer state that makes a reading citable — camera, light and shading — as
+ * the URL fragment of a tablet page (`tablet.html?id=12#m=31&az=45&…`). Pure functions.
+ *
+ * The fragment is never sent to the server, so a permalink cannot break caching, and it keeps
+ * working when the page is served from elsewhere.
+ */
+
+export const SHADING_MODES = Object.freeze([
+  'natural',
+  'clay',
+  'curvature',
+  'accessibility',
+  'relief',
+  'depth',
+  'normals',
+  'quality',
+]);
+
+export const PROJECTIONS = Object.freeze(['orthographic', 'perspective']);
+
+/** Defaults of everything a permalink can carry (camera null: frame the model). */
+export function defaultViewState() {
+  return {
+    model: null,
+    camera: null,
+    light: { azimuthDeg: 315, polarDeg: 45, intensity: 1, ambient: 0.15, gloss: 0 },
+    shading: { mode: 'natural', curvatureScale: 0, exaggeration: 2, quality: null },
+  };
+}
+
+const SIG = 7; // significant digits: 0.1 µm on a 100 mm tablet
+
+function num(v) {
+  return String(Number(v.toPrecision(SIG)));
+}
+
+function vec(v) {
+  return v.map(num).join(',');
+}
+
+/**
+ * Encode a view state as a URL fragment (without the leading '#').
+ * @param {ReturnType<typeof defaultViewState>} state
+ * @returns {string}
+ */
+export function encodeViewState(state) {
+  const p = new URLSearchParams();
+  if (state.model != null) p.set('m', String(state.model));
+  const cam = state.camera;
+  if (cam) {
+    p.set('cam', cam.projection === 'perspective' ? 'p' : 'o');
+    p.set('pos', vec(cam.position));
+    p.set('tgt', vec(cam.target));
+    p.set('up', vec(cam.up));
+    p.set('zoom', num(cam.zoom));
+  }
+  const l = state.light;
+  p.set('az', num(l.azimuthDeg));
+  p.set('po', num(l.polarDeg));
+  p.set('li', num(l.intensity));
+  p.set('am', num(l.ambient));
+  p.set('gl', num(l.gloss));
+  const s = state.shading;
+  p.set('mode', s.mode);
+  if (s.curvatureScale) p.set('cs', String(s.curvatureScale));
+  p.set('ex', num(s.exaggeration));
+  if (s.quality) p.set('qm', s.quality);
+  return p.toString();
+}
+
+function parseNumber(text, lo, hi) {
+  if (text === null || text.trim() === '') return undefined;
+  const v = Number(text);
+  if (!Number.isFinite(v) || v < lo || v > hi) return undefined;
+  return v;
+}
+
+function parseVec(text) {
+  if (!text) return undefined;
+  const parts = text.split(',').map(Number);
+  return parts.length === 3 && parts.every(Number.isFinite) ? parts : undefined;
+}
+
+/**
+ * Decode a URL fragment; anything missing or malformed takes its default and is named in
+ * `ignored`, so the page can say which part of a link it could not use.
+ * @param {string} fragment with or without the leading '#'
+ * @returns {{state: ReturnType<typeof defaultViewState>, ignored: string[]}}
+ */
+export function decodeViewState(fragment) {
+  const p = new URLSearchParams(fragment.startsWith('#') ? fragment.slice(1) : fragment);
+  const state = defaultViewState();
+  const ignored = [];
+  const take = (key, value, assign) => {
+    if (!p.has(key)) return;
+    if (value === undefined) ignored.push(key);
+    else assign(value);
+  };
+
+  take('m', parseNumber(p.get('m'), 1, Number.MAX_SAFE_INTEGER), (v) => {
+    if (Number.isInteger(v)) state.model = v;
+    else ignored.push('m');
+  });
+
+  if (p.has('cam') || p.has('pos')) {
+    const projection = { o: 'orthographic', p: 'perspective' }[p.get('cam') ?? 'o'];
+    const position = parseVec(p.get('pos'));
+    const target = parseVec(p.get('tgt'));
+    const up = parseVec(p.get('up'));
+    const zoom = parseNumber(p.get('zoom') ?? '1', 1e-6, 1e6);
+    const upOk = up && Math.hypot(...up) > 1e-9;
+    const distinct = position && target && Math.hypot(...position.map((v, i) => v - target[i])) > 0;
+    if (projection && position && target && upOk && zoom !== undefined && distinct) {
+      state.camera = { projection, position, target, up, zoom };
+    } else {
+      ignored.push('camera');
+    }
+  }
+
+  const l = state.light;
+  take('az', parseNumber(p.get('az'), -1e6, 1e6), (v) => (l.azimuthDeg = ((v % 360) + 360) % 360));
+  take('po', parseNumber(p.get('po'), 0, 89), (v) => (l.polarDeg = v));
+  take('li', parseNumber(p.get('li'), 0, 10), (v) => (l.intensity = v));
+  take('am', parseNumber(p.get('am'), 0, 1), (v) => (l.ambient = v));
+  take('gl', parseNumber(p.get('gl'), 0, 1), (v) => (l.gloss = v));
+
+  const s = state.shading;
+  take('mode', SHADING_MODES.includes(p.get('mode')) ? p.get('mode') : undefined, (v) => (s.mode = v));
+  take('cs', parseNumber(p.get('cs'), 0, 2), (v) => {
+    if (Number.isInteger(v)) s.curvatureScale = v;
+    else ignored.push('cs');
+  });
+  take('ex', parseNumber(p.get('ex'), 0, 20), (v) => (s.exaggeration = v));
+  take('qm', /^[\w.-]{1,100}$/.test(p.get('qm') ?? '') ? p.get('qm') : undefined, (v) => (s.quality = v));
+  return { state, ignored };
+}

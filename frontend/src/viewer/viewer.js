@@ -1,0 +1,562 @@
+/**
+ * The relighting viewer: `createViewer(canvas)` → `{load, setLight, setShading, setView, …}`.
+ *
+ * Follows three.js' own one-model examples: one scene, one mesh, render on demand (only when
+ * the camera, light, shading or size changes), and every GPU resource disposed when a model is
+ * replaced or the viewer is destroyed. The model sits untransformed in the scene, so world
+ * coordinates are the scan frame in millimetres (x right, y down, z away from the camera).
+ */
+import * as THREE from 'three';
+import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
+import { loadModelAssets } from './assets.js';
+import { lightDirection } from './light.js';
+import { createRelightMaterial, MODE_INDEX } from './material.js';
+import { defaultViewState, SHADING_MODES } from './permalink.js';
+import { canonicalView } from './views.js';
+
+const PERSPECTIVE_FOV_DEG = 30;
+
+/** Shading modes whose maps load on first use. */
+const LAZY_KINDS = { curvature: 'curvature', accessibility: 'accessibility', quality: 'quality' };
+
+/** Which texture each shading mode needs, for "missing texture" messages. */
+const MODE_NEEDS = {
+  natural: 'albedo',
+  curvature: 'curvature',
+  accessibility: 'accessibility',
+  relief: 'normals',
+  normals: 'normals',
+  quality: 'quality',
+};
+
+/**
+ * @param {HTMLCanvasElement} canvas
+ * @param {object} [options]
+ * @param {(what: string) => void} [options.onChange] called after the view, light or shading
+ *   changed (e.g. to update a permalink or a scale bar)
+ */
+export function createViewer(canvas, { onChange = () => {} } = {}) {
+  const renderer = new THREE.WebGLRenderer({ canvas, antialias: true, alpha: false });
+  renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
+  renderer.setClearColor(0x1d1f24, 1);
+  renderer.outputColorSpace = THREE.SRGBColorSpace;
+
+  const scene = new THREE.Scene();
+  const overlay = new THREE.Group(); // measuring marks; drawn on top of the model
+  overlay.renderOrder = 10;
+  scene.add(overlay);
+
+  const ortho = new THREE.OrthographicCamera(-1, 1, 1, -1, 0.01, 1000);
+  const persp = new THREE.PerspectiveCamera(PERSPECTIVE_FOV_DEG, 1, 0.01, 1000);
+  let camera = ortho;
+  let controls = null;
+  let orthoHalfHeight = 50; // mm visible above the target at zoom 1
+
+  const material = createRelightMaterial();
+  let model = null; // {mesh, assets, box, missing: Set}
+  const state = defaultViewState();
+  const pendingLoads = new Set();
+  let frameRequested = false;
+  let disposed = false;
+
+  function makeControls() {
+    // OrbitControls fixes its orbit axis from camera.up when constructed, so a new view with a
+    // different up needs new controls.
+    const target = controls ? controls.target.clone() : new THREE.Vector3();
+    controls?.dispose();
+    controls = new OrbitControls(camera, canvas);
+    controls.target.copy(target);
+    controls.enableDamping = false; // render on demand: no animation loop to settle damping
+    controls.zoomToCursor = true;
+    controls.screenSpacePanning = true;
+    controls.addEventListener('change', () => {
+      invalidate();
+      onChange('camera');
+    });
+    controls.update();
+  }
+
+  function invalidate() {
+    if (frameRequested || disposed) return;
+    frameRequested = true;
+    requestAnimationFrame(render);
+  }
+
+  function updateProjection() {
+    const w = canvas.clientWidth || canvas.width || 1;
+    const h = canvas.clientHeight || canvas.height || 1;
+    const aspect = w / h;
+    ortho.left = -orthoHalfHeight * aspect;
+    ortho.right = orthoHalfHeight * aspect;
+    ortho.top = orthoHalfHeight;
+    ortho.bottom = -orthoHalfHeight;
+    persp.aspect = aspect;
+    ortho.updateProjectionMatrix();
+    persp.updateProjectionMatrix();
+  }
+
+  function resize() {
+    const w = canvas.clientWidth;
+    const h = canvas.clientHeight;
+    if (!w || !h) return;
+    renderer.setSize(w, h, false);
+    updateProjection();
+    invalidate();
+    onChange('size');
+  }
+
+  function render() {
+    frameRequested = false;
+    if (disposed) return;
+    const u = material.uniforms;
+    u.uOrtho.value = camera.isOrthographicCamera;
+    camera.getWorldDirection(u.uViewDirOrtho.value).negate();
+    renderer.render(scene, camera);
+  }
+
+  const resizeObserver = new ResizeObserver(resize);
+  resizeObserver.observe(canvas);
+  makeControls();
+  resize();
+
+  // --- light and shading ------------------------------------------------------------------
+
+  function setLight(light) {
+    Object.assign(state.light, light);
+    const l = lightDirection(state.light.azimuthDeg, state.light.polarDeg);
+    const u = material.uniforms;
+    u.uLightDir.value.set(l[0], l[1], l[2]);
+    u.uIntensity.value = state.light.intensity;
+    u.uAmbient.value = state.light.ambient;
+    u.uGloss.value = state.light.gloss;
+    invalidate();
+    onChange('light');
+  }
+
+  function setShading(shading) {
+    const next = { ...state.shading, ...shading };
+    if (!SHADING_MODES.includes(next.mode)) {
+      throw new RangeError(`mode must be one of ${SHADING_MODES.join(', ')}, got ${next.mode}`);
+    }
+    Object.assign(state.shading, next);
+    applyShading();
+    invalidate();
+    onChange('shading');
+    const kind = LAZY_KINDS[next.mode];
+    if (kind && model && model.assets[kind] === null) {
+      const m = model;
+      const job = m.assets
+        .ensure(kind)
+        .catch((err) => {
+          m.errors[kind] = err.message;
+        })
+        .then(() => {
+          pendingLoads.delete(job);
+          if (model !== m) return;
+          applyShading();
+          invalidate();
+          onChange('shading');
+        });
+      pendingLoads.add(job);
+    }
+  }
+
+  /** Resolves when the maps requested so far have loaded (or failed). */
+  async function whenIdle() {
+    while (pendingLoads.size) await Promise.all([...pendingLoads]);
+  }
+
+  function applyShading() {
+    const u = material.uniforms;
+    const s = state.shading;
+    u.uMode.value = MODE_INDEX[s.mode];
+    u.uEmphasis.value = s.exaggeration;
+    const a = model?.assets;
+    let has = false;
+    if (s.mode === 'curvature') {
+      const layers = a?.curvature ?? [];
+      const layer = layers[Math.min(s.curvatureScale, layers.length - 1)];
+      if (layer) {
+        u.uCurvatureMap.value = layer.texture;
+        u.uCurvatureLod.value = layer.lod;
+        has = true;
+      }
+    } else if (s.mode === 'accessibility' && a?.accessibility) {
+      u.uAccessMap.value = a.accessibility;
+      has = true;
+    } else if (s.mode === 'quality' && a?.quality?.length) {
+      const q = a.quality.find((m) => m.name === s.quality) ?? a.quality[0];
+      u.uQualityMap.value = q.texture;
+      u.uQualityRange.value.set(q.range[0], q.range[1]);
+      has = true;
+    }
+    u.uHasTexture.value = has;
+  }
+
+  /**
+   * What the current shading mode lacks, as a sentence for the UI, or null.
+   * @returns {string | null}
+   */
+  function missingMessage() {
+    if (!model) return null;
+    const need = MODE_NEEDS[state.shading.mode];
+    const a = model.assets;
+    const names = a.names;
+    const file = {
+      normals: 'normals.png',
+      albedo: 'albedo.png',
+      curvature: 'curvature.png',
+      accessibility: 'accessibility.png',
+      quality: 'a quality map (quality/*.npy)',
+    }[need];
+    const present = {
+      normals: Boolean(a.normals),
+      albedo: Boolean(a.albedo),
+      curvature: names.curvature.length > 0,
+      accessibility: Boolean(names.accessibility),
+      quality: names.quality.length > 0,
+    }[need];
+    const lacking = need !== undefined && !present;
+    const notes = [];
+    if (lacking) notes.push(`This model has no ${file}: the ${state.shading.mode} view is not available.`);
+    else if (model.errors[need]) notes.push(`Could not load ${file}: ${model.errors[need]}`);
+    else if (LAZY_KINDS[state.shading.mode] && a[need] === null) notes.push(`Loading ${file}…`);
+    if (!a.normals && need !== 'normals') {
+      notes.push('No normals.png: lit by the mesh normals, so fine wedges are smoothed away.');
+    }
+    return notes.length ? notes.join(' ') : null;
+  }
+
+  // --- camera -----------------------------------------------------------------------------
+
+  function setView(name) {
+    if (!model) return;
+    const w = canvas.clientWidth || 1;
+    const h = canvas.clientHeight || 1;
+    const v = canonicalView(name, model.box, { aspect: w / h });
+    placeCamera({
+      position: v.position,
+      target: v.target,
+      up: v.up,
+      halfHeight: v.halfHeight,
+    });
+  }
+
+  function placeCamera({ position, target, up, halfHeight, zoom }) {
+    for (const cam of [ortho, persp]) {
+      cam.up.set(...up);
+      cam.position.set(...position);
+      cam.lookAt(...target);
+    }
+    const distance = Math.hypot(...position.map((p, i) => p - target[i]));
+    if (halfHeight !== undefined) {
+      // Same visible size at the target in both projections.
+      orthoHalfHeight = halfHeight;
+      ortho.zoom = 1;
+      const d = halfHeight / Math.tan((PERSPECTIVE_FOV_DEG * Math.PI) / 360);
+      const dir = position.map((p, i) => (p - target[i]) / distance);
+      persp.position.set(...target.map((t, i) => t + dir[i] * d));
+    } else {
+      ortho.zoom = zoom ?? 1;
+    }
+    if (controls) controls.target.set(...target);
+    updateClipping();
+    updateProjection();
+    makeControls();
+    invalidate();
+    onChange('camera');
+  }
+
+  function updateClipping() {
+    const radius = model ? model.radius : 100;
+    for (const cam of [ortho, persp]) {
+      const d = cam.position.distanceTo(controls ? controls.target : new THREE.Vector3());
+      cam.near = Math.max(0.01, d - radius * 4);
+      cam.far = d + radius * 4;
+      if (cam.isPerspectiveCamera) cam.near = Math.max(d / 1000, 0.01);
+    }
+  }
+
+  function setProjection(projection) {
+    if (projection !== 'orthographic' && projection !== 'perspective') {
+      throw new RangeError(`projection must be orthographic or perspective, got ${projection}`);
+    }
+    const next = projection === 'orthographic' ? ortho : persp;
+    if (next === camera) return;
+    const target = controls.target;
+    const tanHalf = Math.tan((PERSPECTIVE_FOV_DEG * Math.PI) / 360);
+    const dir = camera.position.clone().sub(target).normalize();
+    if (next === persp) {
+      const visibleHalf = orthoHalfHeight / ortho.zoom;
+      persp.position.copy(target).addScaledVector(dir, visibleHalf / tanHalf);
+    } else {
+      const visibleHalf = persp.position.distanceTo(target) * tanHalf;
+      ortho.position.copy(target).addScaledVector(dir, Math.max(visibleHalf / tanHalf, model?.radius * 3 || 100));
+      ortho.zoom = orthoHalfHeight / visibleHalf;
+    }
+    next.up.copy(camera.up);
+    next.lookAt(target);
+    camera = next;
+    updateClipping();
+    updateProjection();
+    makeControls();
+    invalidate();
+    onChange('camera');
+  }
+
+  // --- loading ----------------------------------------------------------------------------
+
+  /**
+   * Load a model version, replacing (and disposing) the current one.
+   * @param {object} source
+   * @param {Record<string, string>} source.assets asset name → URL (the API's `assets` map)
+   * @param {(fraction: number, label: string) => void} [source.onProgress]
+   * @param {AbortSignal} [source.signal]
+   */
+  async function load({ assets, onProgress = () => {}, signal } = {}) {
+    const loaded = await loadModelAssets(assets, { onProgress, signal });
+    if (disposed || signal?.aborted) {
+      loaded.dispose();
+      return null;
+    }
+    unloadModel();
+    const { geometry } = loaded;
+    geometry.computeBoundingBox();
+    geometry.computeBoundingSphere();
+    const mesh = new THREE.Mesh(geometry, material);
+    scene.add(mesh);
+    const bb = geometry.boundingBox;
+    const box = { min: bb.min.toArray(), max: bb.max.toArray() };
+    model = { mesh, assets: loaded, box, radius: geometry.boundingSphere.radius || 1, errors: {} };
+    const u = material.uniforms;
+    u.uNormalMap.value = loaded.normals ?? material.userData.blank;
+    u.uHasNormalMap.value = Boolean(loaded.normals);
+    u.uAlbedoMap.value = loaded.albedo ?? material.userData.blank;
+    u.uHasAlbedo.value = Boolean(loaded.albedo);
+    const img = loaded.normals?.image ?? loaded.albedo?.image;
+    if (img) u.uTexelSize.value.set(1 / img.width, 1 / img.height);
+    u.uHeightRange.value.set(-bb.max.z, -bb.min.z);
+    setShading({}); // applies the mode and starts loading its maps
+    setView('obverse');
+    onChange('model');
+    return model;
+  }
+
+  function unloadModel() {
+    if (!model) return;
+    scene.remove(model.mesh);
+    model.assets.dispose(); // geometry and every texture
+    clearOverlay();
+    const u = material.uniforms;
+    const blank = material.userData.blank;
+    for (const key of ['uNormalMap', 'uAlbedoMap', 'uCurvatureMap', 'uAccessMap', 'uQualityMap']) {
+      u[key].value = blank;
+    }
+    model = null;
+    invalidate();
+  }
+
+  // --- picking and overlay ----------------------------------------------------------------
+
+  const raycaster = new THREE.Raycaster();
+
+  /**
+   * The model point under a client (CSS pixel) position.
+   * @returns {{point: number[], uv: number[] | null} | null} point in mm (scan frame)
+   */
+  function pick(clientX, clientY) {
+    if (!model) return null;
+    const rect = canvas.getBoundingClientRect();
+    const ndc = new THREE.Vector2(
+      ((clientX - rect.left) / rect.width) * 2 - 1,
+      -((clientY - rect.top) / rect.height) * 2 + 1,
+    );
+    raycaster.setFromCamera(ndc, camera);
+    const hit = raycaster.intersectObject(model.mesh, false)[0];
+    if (!hit) return null;
+    return { point: hit.point.toArray(), uv: hit.uv ? hit.uv.toArray() : null };
+  }
+
+  /** Client (CSS pixel) position of a point in mm. */
+  function project(point) {
+    const rect = canvas.getBoundingClientRect();
+    const v = new THREE.Vector3(...point).project(camera);
+    return { x: rect.left + ((v.x + 1) / 2) * rect.width, y: rect.top + ((1 - v.y) / 2) * rect.height };
+  }
+
+  /** Millimetres per CSS pixel at the orbit target (for the scale bar). */
+  function mmPerPixel() {
+    const h = canvas.clientHeight || 1;
+    if (camera.isOrthographicCamera) return (2 * orthoHalfHeight) / ortho.zoom / h;
+    const d = persp.position.distanceTo(controls.target);
+    return (2 * d * Math.tan((PERSPECTIVE_FOV_DEG * Math.PI) / 360)) / h;
+  }
+
+  function clearOverlay() {
+    for (const child of [...overlay.children]) {
+      overlay.remove(child);
+      child.geometry?.dispose();
+      child.material?.dispose();
+    }
+    invalidate();
+  }
+
+  /** Draw marks (points and a polyline) for measurements; replaces the previous marks. */
+  function setMarks(points) {
+    clearOverlay();
+    if (!points.length || !model) return;
+    const size = model.radius * 0.012;
+    const markMaterial = () =>
+      new THREE.MeshBasicMaterial({ color: 0xffcc00, depthTest: false, transparent: true });
+    for (const p of points) {
+      const dot = new THREE.Mesh(new THREE.SphereGeometry(size, 12, 8), markMaterial());
+      dot.position.set(...p);
+      dot.renderOrder = 11;
+      overlay.add(dot);
+    }
+    if (points.length > 1) {
+      const geom = new THREE.BufferGeometry().setFromPoints(points.map((p) => new THREE.Vector3(...p)));
+      const line = new THREE.Line(
+        geom,
+        new THREE.LineBasicMaterial({ color: 0xffcc00, depthTest: false, transparent: true }),
+      );
+      line.renderOrder = 11;
+      overlay.add(line);
+    }
+    invalidate();
+  }
+
+  // --- state, screenshot, cleanup ---------------------------------------------------------
+
+  function getState() {
+    const t = controls.target;
+    return {
+      model: state.model,
+      camera: {
+        projection: camera.isOrthographicCamera ? 'orthographic' : 'perspective',
+        position: camera.position.toArray(),
+        target: t.toArray(),
+        up: camera.up.toArray(),
+        zoom: camera.isOrthographicCamera ? ortho.zoom : 1,
+      },
+      light: { ...state.light },
+      shading: { ...state.shading },
+    };
+  }
+
+  /** Restore a state from {@link getState} or a permalink (camera null: keep the framing). */
+  function setState(next) {
+    if (next.model !== undefined) state.model = next.model;
+    if (next.light) setLight(next.light);
+    if (next.shading) setShading(next.shading);
+    if (next.camera) {
+      if (next.camera.projection === 'perspective') {
+        camera = persp;
+      } else {
+        camera = ortho;
+      }
+      camera.up.set(...next.camera.up);
+      camera.position.set(...next.camera.position);
+      camera.lookAt(...next.camera.target);
+      if (camera.isOrthographicCamera) ortho.zoom = next.camera.zoom;
+      controls.target.set(...next.camera.target);
+      updateClipping();
+      updateProjection();
+      makeControls();
+      invalidate();
+    }
+  }
+
+  /**
+   * Render the current view at a chosen size and return it as a PNG.
+   * @param {{width: number, height: number}} size in pixels (clamped to the GPU's limit)
+   * @returns {Promise<Blob>}
+   */
+  async function screenshot({ width, height }) {
+    const max = renderer.capabilities.maxTextureSize;
+    if (!(width >= 16 && height >= 16)) throw new RangeError('width and height must be ≥ 16 px');
+    const scale = Math.min(1, max / width, max / height);
+    const w = Math.round(width * scale);
+    const h = Math.round(height * scale);
+    const prevRatio = renderer.getPixelRatio();
+    const prev = renderer.getSize(new THREE.Vector2());
+    // Render at the requested size, read it back in the same task (no preserveDrawingBuffer
+    // needed), then restore: nothing is composited in between, so nothing flickers.
+    renderer.setPixelRatio(1);
+    renderer.setSize(w, h, false);
+    const aspect = w / h;
+    const saved = { l: ortho.left, r: ortho.right, pa: persp.aspect };
+    ortho.left = -orthoHalfHeight * aspect;
+    ortho.right = orthoHalfHeight * aspect;
+    persp.aspect = aspect;
+    ortho.updateProjectionMatrix();
+    persp.updateProjectionMatrix();
+    render();
+    const blobPromise = new Promise((resolve, reject) =>
+      canvas.toBlob((b) => (b ? resolve(b) : reject(new Error('the browser could not encode the PNG'))), 'image/png'),
+    );
+    renderer.setPixelRatio(prevRatio);
+    renderer.setSize(prev.x, prev.y, false);
+    ortho.left = saved.l;
+    ortho.right = saved.r;
+    persp.aspect = saved.pa;
+    updateProjection();
+    render();
+    return blobPromise;
+  }
+
+  /** GPU memory in use (three.js' renderer.info.memory): geometries and textures. */
+  function memory() {
+    return { ...renderer.info.memory };
+  }
+
+  function dispose() {
+    if (disposed) return;
+    unloadModel();
+    disposed = true;
+    resizeObserver.disconnect();
+    controls.dispose();
+    material.userData.blank.dispose();
+    material.dispose();
+    renderer.renderLists.dispose();
+    renderer.dispose();
+  }
+
+  setLight(state.light);
+  applyShading();
+
+  return {
+    load,
+    unload: unloadModel,
+    setLight,
+    setShading,
+    setView,
+    setProjection,
+    resetView: () => setView('obverse'),
+    getState,
+    setState,
+    pick,
+    project,
+    mmPerPixel,
+    setMarks,
+    clearMarks: clearOverlay,
+    missingMessage,
+    screenshot,
+    memory,
+    whenIdle,
+    invalidate,
+    dispose,
+    get model() {
+      return model;
+    },
+    get light() {
+      return { ...state.light };
+    },
+    get shading() {
+      return { ...state.shading };
+    },
+    get projection() {
+      return camera.isOrthographicCamera ? 'orthographic' : 'perspective';
+    },
+  };
+}
