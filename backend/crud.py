@@ -1,0 +1,273 @@
+"""Reads and writes of users, tokens, institutions and tablets.
+
+Keyword-only functions that add/flush but never commit: the session scope (API request or CLI
+command, see backend.db.session_scope) is the one place that commits. Who may see or edit
+what is decided here too (:func:`visible_clause`, :func:`can_edit_tablet`), so the API
+dependencies and the search module share one rule:
+
+- admin: every record;
+- staff: public records plus every record of their institution; edit their institution's;
+- reader and anonymous: public records only; edit nothing.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime, timedelta
+from typing import Any
+
+from sqlalchemy import ColumnElement, or_, select, true
+from sqlalchemy.orm import Session
+
+from backend import security
+from backend.tables import ApiToken, Institution, Model, Role, Tablet, User
+
+# Writing last_used_at on every request would turn each read into a write; a minute is plenty.
+TOKEN_TOUCH_INTERVAL = timedelta(minutes=1)
+
+
+def _now() -> datetime:
+    return datetime.now(UTC)
+
+
+def _aware(value: datetime | None) -> datetime | None:
+    # SQLite returns naive datetimes even for timezone=True columns; they were stored in UTC.
+    if value is not None and value.tzinfo is None:
+        return value.replace(tzinfo=UTC)
+    return value
+
+
+# --- institutions ---------------------------------------------------------------------------
+
+
+def get_institution_by_name(session: Session, *, name: str) -> Institution | None:
+    return session.scalar(select(Institution).where(Institution.name == name))
+
+
+def get_or_create_institution(session: Session, *, name: str) -> Institution:
+    name = name.strip()
+    if not name:
+        raise ValueError("institution name must not be empty")
+    institution = get_institution_by_name(session, name=name)
+    if institution is None:
+        institution = Institution(name=name)
+        session.add(institution)
+        session.flush()
+    return institution
+
+
+def list_institutions(session: Session) -> list[Institution]:
+    return list(session.scalars(select(Institution).order_by(Institution.name)))
+
+
+# --- users ----------------------------------------------------------------------------------
+
+
+def get_user(session: Session, *, user_id: int) -> User | None:
+    return session.get(User, user_id)
+
+
+def get_user_by_email(session: Session, *, email: str) -> User | None:
+    return session.scalar(select(User).where(User.email == email.strip().lower()))
+
+
+def list_users(session: Session) -> list[User]:
+    return list(session.scalars(select(User).order_by(User.email)))
+
+
+def create_user(
+    session: Session,
+    *,
+    email: str,
+    role: Role,
+    password: str | None = None,
+    institution_id: int | None = None,
+) -> User:
+    """A new user; raises ValueError naming the field when the combination is not allowed."""
+    email = email.strip().lower()
+    if "@" not in email:
+        raise ValueError(f"email: {email!r} is not an e-mail address")
+    if role == Role.staff and institution_id is None:
+        raise ValueError("institution: staff users must belong to an institution")
+    if get_user_by_email(session, email=email) is not None:
+        raise ValueError(f"email: a user {email} already exists")
+    user = User(
+        email=email,
+        role=role,
+        institution_id=institution_id,
+        password_hash=security.hash_password(password) if password else None,
+        is_active=True,
+    )
+    session.add(user)
+    session.flush()
+    return user
+
+
+def update_user(session: Session, *, user: User, changes: dict[str, Any]) -> User:
+    if "password" in changes:
+        password = changes.pop("password")
+        if password:
+            user.password_hash = security.hash_password(password)
+    for key, value in changes.items():
+        setattr(user, key, value)
+    if user.role == Role.staff and user.institution_id is None:
+        raise ValueError("institution_id: staff users must belong to an institution")
+    session.flush()
+    return user
+
+
+def authenticate(session: Session, *, email: str, password: str) -> User | None:
+    user = get_user_by_email(session, email=email)
+    if user is None or not user.is_active:
+        # Hash anyway so that unknown e-mails take as long as wrong passwords.
+        security.verify_password(_DUMMY_HASH, password)
+        return None
+    return user if security.verify_password(user.password_hash, password) else None
+
+
+_DUMMY_HASH = security.hash_password("not a real password")
+
+
+# --- API tokens -----------------------------------------------------------------------------
+
+
+def create_token(session: Session, *, user: User, name: str) -> tuple[ApiToken, str]:
+    """A new token of ``user``; returns the row and the secret (shown once, stored hashed)."""
+    secret = security.new_token_secret()
+    token = ApiToken(
+        user_id=user.id,
+        name=name.strip() or "token",
+        token_hash=security.token_hash(secret),
+        prefix=security.token_display_prefix(secret),
+    )
+    session.add(token)
+    session.flush()
+    return token, secret
+
+
+def list_tokens(session: Session, *, user: User) -> list[ApiToken]:
+    return list(
+        session.scalars(select(ApiToken).where(ApiToken.user_id == user.id).order_by(ApiToken.id))
+    )
+
+
+def get_token(session: Session, *, token_id: int) -> ApiToken | None:
+    return session.get(ApiToken, token_id)
+
+
+def revoke_token(session: Session, *, token: ApiToken) -> ApiToken:
+    if token.revoked_at is None:
+        token.revoked_at = _now()
+        session.flush()
+    return token
+
+
+def user_for_token(session: Session, *, secret: str) -> User | None:
+    """The active user owning the unrevoked token ``secret``, or None."""
+    if not secret.startswith(security.TOKEN_PREFIX):
+        return None
+    token = session.scalar(
+        select(ApiToken).where(ApiToken.token_hash == security.token_hash(secret))
+    )
+    if token is None or token.revoked_at is not None:
+        return None
+    user = session.get(User, token.user_id)
+    if user is None or not user.is_active:
+        return None
+    now = _now()
+    last = _aware(token.last_used_at)
+    if last is None or now - last > TOKEN_TOUCH_INTERVAL:
+        token.last_used_at = now
+        session.flush()
+    return user
+
+
+# --- tablets and who may see them -----------------------------------------------------------
+
+
+def visible_clause(user: User | None) -> ColumnElement[bool]:
+    """SQL condition on ``tablets`` selecting the records ``user`` may read."""
+    if user is not None and user.role == Role.admin:
+        return true()
+    if user is not None and user.role == Role.staff and user.institution_id is not None:
+        return or_(Tablet.is_public.is_(True), Tablet.institution_id == user.institution_id)
+    return Tablet.is_public.is_(True)
+
+
+def can_read_tablet(user: User | None, tablet: Tablet) -> bool:
+    if tablet.is_public:
+        return True
+    if user is None:
+        return False
+    if user.role == Role.admin:
+        return True
+    return (
+        user.role == Role.staff
+        and user.institution_id is not None
+        and tablet.institution_id == user.institution_id
+    )
+
+
+def can_edit_tablet(user: User | None, tablet: Tablet) -> bool:
+    if user is None:
+        return False
+    if user.role == Role.admin:
+        return True
+    return (
+        user.role == Role.staff
+        and user.institution_id is not None
+        and tablet.institution_id == user.institution_id
+    )
+
+
+def get_tablet(session: Session, *, tablet_id: int) -> Tablet | None:
+    return session.get(Tablet, tablet_id)
+
+
+def get_tablet_by_p_number(session: Session, *, p_number: str) -> Tablet | None:
+    return session.scalar(select(Tablet).where(Tablet.p_number == p_number))
+
+
+def create_tablet(
+    session: Session, *, fields: dict[str, Any], institution_id: int | None
+) -> Tablet:
+    """A new catalogue record; ValueError naming the field on a duplicate P-number."""
+    p_number = fields.get("p_number")
+    if p_number and get_tablet_by_p_number(session, p_number=p_number) is not None:
+        raise ValueError(f"p_number: a tablet {p_number} already exists")
+    values = {k: v for k, v in fields.items() if v is not None}
+    values.setdefault("extra", {})
+    values.setdefault("is_public", False)
+    tablet = Tablet(**values, institution_id=institution_id, has_3d=False)
+    session.add(tablet)
+    session.flush()
+    return tablet
+
+
+def update_tablet(session: Session, *, tablet: Tablet, changes: dict[str, Any]) -> Tablet:
+    p_number = changes.get("p_number")
+    if p_number and p_number != tablet.p_number:
+        other = get_tablet_by_p_number(session, p_number=p_number)
+        if other is not None and other.id != tablet.id:
+            raise ValueError(f"p_number: a tablet {p_number} already exists")
+    for key, value in changes.items():
+        setattr(tablet, key, value)
+    tablet.updated_at = _now()
+    session.flush()
+    return tablet
+
+
+def delete_tablet(session: Session, *, tablet: Tablet) -> None:
+    session.delete(tablet)
+    session.flush()
+
+
+def refresh_has_3d(session: Session, *, tablet_id: int) -> bool:
+    """Recompute the maintained ``tablets.has_3d`` flag; call after adding/removing models."""
+    tablet = session.get(Tablet, tablet_id)
+    if tablet is None:
+        raise ValueError(f"tablet_id: no tablet {tablet_id}")
+    has = session.scalar(select(Model.id).where(Model.tablet_id == tablet_id).limit(1)) is not None
+    if tablet.has_3d != has:
+        tablet.has_3d = has
+        session.flush()
+    return has

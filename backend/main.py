@@ -1,0 +1,92 @@
+"""The FastAPI application: ``create_app(settings)``.
+
+API under ``/api/v1`` (OpenAPI UI at ``/docs``), errors as ``{detail, where}``, CORS for
+reads, and the built frontend (``frontend/dist``) at ``/`` when it exists.
+
+Routers: one per resource, listed in ``ROUTERS``. Modules listed in ``OPTIONAL_ROUTERS``
+(uploads, scans, jobs, models, iiif: the uploads engineer's) are included when they exist;
+each must expose ``router = APIRouter(prefix="/<resource>", ...)``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.staticfiles import StaticFiles
+
+from backend.api import auth, institutions, tablets, tokens, users
+from backend.db import make_engine, make_sessionmaker
+from backend.errors import install_error_handlers
+from backend.security import SessionSigner
+from backend.settings import Settings, get_settings
+
+log = logging.getLogger("backend")
+
+ROUTERS = (auth.router, users.router, tokens.router, institutions.router, tablets.router)
+OPTIONAL_ROUTERS = ("uploads", "scans", "jobs", "models", "iiif")
+
+
+def _optional_routers() -> list:
+    found = []
+    for name in OPTIONAL_ROUTERS:
+        module_name = f"backend.api.{name}"
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name != module_name:  # a real missing dependency must not be hidden
+                raise
+            continue
+        found.append(module.router)
+    return found
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings if settings is not None else get_settings()
+    engine = make_engine(settings.resolved_database_url)
+
+    @asynccontextmanager
+    async def lifespan(_app: FastAPI):
+        yield
+        engine.dispose()
+
+    app = FastAPI(
+        title="Digital Hammurabi library",
+        version="1",
+        docs_url="/docs",
+        redoc_url=None,
+        openapi_url=f"{settings.api_prefix}/openapi.json",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.engine = engine
+    app.state.sessionmaker = make_sessionmaker(engine)
+    app.state.session_signer = SessionSigner(
+        settings.signing_secret, max_age_s=settings.session_max_age_s
+    )
+    install_error_handlers(app)
+    # Reads are open to any origin (catalogue data, models for other viewers); writes need a
+    # token or a same-site cookie, so no credentials are allowed cross-origin.
+    app.add_middleware(
+        CORSMiddleware,
+        allow_origins=settings.cors_allow_origins,
+        allow_methods=["GET", "HEAD", "OPTIONS"],
+        allow_headers=["Authorization", "Range", "Accept"],
+        expose_headers=["Content-Range", "ETag", "X-Total-Count", "Content-Disposition"],
+        allow_credentials=False,
+    )
+
+    @app.get(f"{settings.api_prefix}/health", tags=["health"])
+    def health() -> dict[str, str]:
+        return {"status": "ok"}
+
+    for router in (*ROUTERS, *_optional_routers()):
+        app.include_router(router, prefix=settings.api_prefix)
+
+    dist = settings.resolved_frontend_dist
+    if dist is not None and dist.is_dir():
+        app.mount("/", StaticFiles(directory=dist, html=True), name="frontend")
+    return app

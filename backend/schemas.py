@@ -1,0 +1,192 @@
+"""Pydantic schemas of the API (request bodies and responses), apart from the tables."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from backend.tables import Role
+
+P_NUMBER_PATTERN = r"^[PQX]\d{6}$"
+EMAIL_PATTERN = r"^[^@\s]+@[^@\s]+\.[^@\s]+$"
+
+
+class ORMModel(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
+
+# --- auth and users -------------------------------------------------------------------------
+
+
+class LoginIn(BaseModel):
+    email: str = Field(min_length=3, max_length=320)
+    password: str = Field(min_length=1, max_length=1000)
+
+
+class InstitutionIn(BaseModel):
+    name: str = Field(min_length=1, max_length=200)
+
+
+class InstitutionOut(ORMModel):
+    id: int
+    name: str
+    created_at: datetime
+
+
+class UserOut(ORMModel):
+    id: int
+    email: str
+    role: Role
+    institution_id: int | None
+    institution: str | None = None
+    is_active: bool
+    created_at: datetime
+
+    @classmethod
+    def of(cls, user) -> UserOut:
+        data = {name: getattr(user, name) for name in cls.model_fields if name != "institution"}
+        data["institution"] = user.institution.name if user.institution else None
+        return cls.model_validate(data)
+
+
+class UserCreate(BaseModel):
+    email: str = Field(pattern=EMAIL_PATTERN, max_length=320)
+    password: str | None = Field(default=None, min_length=8, max_length=1000)
+    role: Role = Role.reader
+    institution_id: int | None = None
+
+    @field_validator("email", mode="before")
+    @classmethod
+    def _lower(cls, value):
+        return value.strip().lower() if isinstance(value, str) else value
+
+
+class UserUpdate(BaseModel):
+    password: str | None = Field(default=None, min_length=8, max_length=1000)
+    role: Role | None = None
+    institution_id: int | None = None
+    is_active: bool | None = None
+
+
+class TokenCreate(BaseModel):
+    name: str = Field(min_length=1, max_length=200)
+
+
+class TokenOut(ORMModel):
+    id: int
+    name: str
+    prefix: str
+    created_at: datetime
+    last_used_at: datetime | None
+    revoked_at: datetime | None
+
+
+class TokenCreated(TokenOut):
+    secret: str = Field(description="the token; shown once, never again")
+
+
+# --- tablets --------------------------------------------------------------------------------
+
+_TEXT_FIELDS = ["designation", "museum_no", "collection", "owner", "excavation_no", "period", "provenience", "genre", "subgenre", "language", "material", "object_type", "primary_publication", "notes"]
+
+
+class TabletFields(BaseModel):
+    """Catalogue fields shared by create and update (all optional here)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    p_number: str | None = Field(default=None, pattern=P_NUMBER_PATTERN)
+    museum_no: str | None = Field(default=None, max_length=300)
+    collection: str | None = Field(default=None, max_length=300)
+    owner: str | None = Field(default=None, max_length=300)
+    excavation_no: str | None = Field(default=None, max_length=300)
+    period: str | None = Field(default=None, max_length=200)
+    provenience: str | None = Field(default=None, max_length=200)
+    genre: str | None = Field(default=None, max_length=200)
+    subgenre: str | None = Field(default=None, max_length=300)
+    language: str | None = Field(default=None, max_length=200)
+    material: str | None = Field(default=None, max_length=200)
+    object_type: str | None = Field(default=None, max_length=200)
+    height_mm: float | None = Field(default=None, gt=0, le=2000)
+    width_mm: float | None = Field(default=None, gt=0, le=2000)
+    thickness_mm: float | None = Field(default=None, gt=0, le=2000)
+    primary_publication: str | None = Field(default=None, max_length=5000)
+    notes: str | None = Field(default=None, max_length=20000)
+    is_public: bool | None = None
+    extra: dict[str, Any] | None = None
+
+    @field_validator(*[f for f in _TEXT_FIELDS if f != "designation"], mode="before")
+    @classmethod
+    def _blank_is_none(cls, value):
+        if isinstance(value, str):
+            value = value.strip()
+            return value or None
+        return value
+
+
+class TabletCreate(TabletFields):
+    designation: str = Field(min_length=1, max_length=300)
+    institution_id: int | None = Field(
+        default=None, description="admins only; staff create for their own institution"
+    )
+
+
+class TabletUpdate(TabletFields):
+    designation: str | None = Field(default=None, min_length=1, max_length=300)
+    institution_id: int | None = Field(default=None, description="admins only")
+
+
+class TabletOut(ORMModel):
+    id: int
+    url: str = ""
+    designation: str
+    p_number: str | None
+    museum_no: str | None
+    collection: str | None
+    owner: str | None
+    excavation_no: str | None
+    period: str | None
+    provenience: str | None
+    genre: str | None
+    subgenre: str | None
+    language: str | None
+    material: str | None
+    object_type: str | None
+    height_mm: float | None
+    width_mm: float | None
+    thickness_mm: float | None
+    primary_publication: str | None
+    notes: str | None
+    institution_id: int | None
+    institution: str | None = None
+    is_public: bool
+    has_3d: bool
+    extra: dict[str, Any]
+    created_at: datetime
+    updated_at: datetime
+
+    @classmethod
+    def of(cls, tablet, *, api_prefix: str = "/api/v1") -> TabletOut:
+        data = {
+            name: getattr(tablet, name)
+            for name in cls.model_fields
+            if name not in ("url", "institution")
+        }
+        data["url"] = f"{api_prefix}/tablets/{tablet.id}"
+        data["institution"] = tablet.institution.name if tablet.institution else None
+        return cls.model_validate(data)
+
+
+class FacetValue(BaseModel):
+    value: str | bool | None
+    count: int
+
+
+class SearchPage(BaseModel):
+    items: list[TabletOut]
+    total: int
+    page: int
+    page_size: int
+    facets: dict[str, list[FacetValue]]
