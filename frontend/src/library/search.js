@@ -1,0 +1,125 @@
+/**
+ * The library page: search box, facets with counts, result grid with thumbnails, paging.
+ * The URL holds the search (see searchState.js), so every search is a link and Back works.
+ */
+import * as api from '../api.js';
+import { el, showError } from '../dom.js';
+import { apiParams, FACETS, formatSearch, pageList, parseSearch, SORTS, toggleFacet } from './searchState.js';
+
+const $ = (id) => document.getElementById(id);
+let state = parseSearch(window.location.search);
+let controller = null;
+
+for (const [value, label] of SORTS) $('sort').append(el('option', { value }, label));
+
+function go(next, { push = true } = {}) {
+  state = next;
+  if (push) history.pushState(null, '', `${window.location.pathname}${formatSearch(state)}`);
+  run();
+}
+
+function facetLabel(key, value) {
+  if (key === 'has_3d') return value === true || value === 'true' ? 'with 3-D model' : 'without 3-D model';
+  return value === null || value === '' ? '(unknown)' : String(value);
+}
+
+function renderFacets(facets) {
+  const box = $('facets');
+  box.replaceChildren();
+  for (const [key, title] of FACETS) {
+    const values = facets?.[key] ?? [];
+    const active = state.filters[key];
+    if (!values.length && active === undefined) continue;
+    const list = el('ul', {});
+    for (const { value, count } of values) {
+      if (value === null) continue;
+      const on = active === String(value);
+      const button = el(
+        'button',
+        { type: 'button', class: on ? 'facet on' : 'facet', 'aria-pressed': String(on), 'data-facet': key, 'data-value': String(value) },
+        el('span', { class: 'facet-value' }, facetLabel(key, value)),
+        el('span', { class: 'count' }, count),
+      );
+      button.addEventListener('click', () => go(toggleFacet(state, key, value)));
+      list.append(el('li', {}, button));
+    }
+    box.append(el('section', { class: 'facet-group' }, el('h2', {}, title), list));
+  }
+}
+
+function thumbnailOf(item) {
+  const url = item.thumbnail_url ?? item.thumbnail ?? null;
+  if (url) return el('img', { src: api.assetHref(url), alt: '', loading: 'lazy', width: 160, height: 160 });
+  return el('div', { class: 'placeholder', 'aria-hidden': 'true' }, item.has_3d ? '3-D' : '—');
+}
+
+function renderResults(page) {
+  const list = $('results');
+  list.replaceChildren();
+  for (const item of page.items) {
+    const meta = [item.period, item.provenience, item.genre].filter(Boolean).join(' · ');
+    const card = el(
+      'li',
+      { class: 'card' },
+      el(
+        'a',
+        { href: `./tablet.html?id=${encodeURIComponent(item.id)}` },
+        thumbnailOf(item),
+        el('strong', { class: 'designation' }, item.designation),
+        item.museum_no ? el('span', { class: 'museum' }, item.museum_no) : null,
+        el('span', { class: 'meta' }, meta),
+        item.has_3d ? el('span', { class: 'badge' }, '3-D') : null,
+      ),
+    );
+    list.append(card);
+  }
+  const from = page.total ? (page.page - 1) * page.page_size + 1 : 0;
+  const to = Math.min(page.total, page.page * page.page_size);
+  $('summary').textContent = page.total
+    ? `${page.total.toLocaleString('en')} tablet${page.total === 1 ? '' : 's'} — showing ${from}–${to}`
+    : 'No tablet matches this search.';
+  const pager = $('pager');
+  pager.replaceChildren();
+  for (const n of pageList(page.page, page.total, page.page_size)) {
+    if (n === null) {
+      pager.append(el('span', { class: 'gap' }, '…'));
+      continue;
+    }
+    const b = el('button', { type: 'button', 'aria-current': n === page.page ? 'page' : null }, n);
+    b.addEventListener('click', () => go({ ...state, page: n }));
+    pager.append(b);
+  }
+  const params = apiParams(state);
+  delete params.page;
+  delete params.page_size;
+  $('export-csv').href = api.searchUrl(params, 'csv');
+  $('export-jsonl').href = api.searchUrl(params, 'jsonl');
+}
+
+async function run() {
+  $('q').value = state.q;
+  $('sort').value = state.sort;
+  controller?.abort();
+  controller = new AbortController();
+  document.body.classList.add('busy');
+  try {
+    const page = await api.searchTablets(apiParams(state), { signal: controller.signal });
+    showError($('search-error'), '');
+    renderFacets(page.facets);
+    renderResults(page);
+    document.body.dataset.total = String(page.total);
+  } catch (err) {
+    if (err.name === 'AbortError') return;
+    showError($('search-error'), `Search failed: ${err.message}`);
+  } finally {
+    document.body.classList.remove('busy');
+  }
+}
+
+$('search-form').addEventListener('submit', (e) => {
+  e.preventDefault();
+  go({ ...state, q: $('q').value.trim(), sort: $('sort').value, page: 1 });
+});
+$('sort').addEventListener('change', () => go({ ...state, sort: $('sort').value, page: 1 }));
+window.addEventListener('popstate', () => go(parseSearch(window.location.search), { push: false }));
+run();

@@ -1,0 +1,224 @@
+/**
+ * The tablet page (`tablet.html?id=N#<permalink>`): catalogue data, scans with their job
+ * state, model versions, downloads, links, and the relighting viewer.
+ */
+import * as api from './api.js';
+import { el, formatDate, showError } from './dom.js';
+import { bindViewerUi } from './viewer/ui.js';
+import { decodeViewState, encodeViewState } from './viewer/permalink.js';
+import { createViewer } from './viewer/viewer.js';
+
+const $ = (id) => document.getElementById(id);
+const params = new URLSearchParams(window.location.search);
+const tabletId = params.get('id');
+
+const CATALOGUE_FIELDS = [
+  ['designation', 'Designation'],
+  ['p_number', 'CDLI number'],
+  ['museum_no', 'Museum number'],
+  ['collection', 'Collection'],
+  ['period', 'Period'],
+  ['provenience', 'Provenience'],
+  ['genre', 'Genre'],
+  ['subgenre', 'Subgenre'],
+  ['language', 'Language'],
+  ['material', 'Material'],
+  ['object_type', 'Object type'],
+  ['excavation_no', 'Excavation number'],
+  ['primary_publication', 'Publication'],
+  ['institution', 'Institution'],
+];
+
+const JOB_POLL_MS = 2000;
+
+let tablet = null;
+let currentModel = null; // the API's model record
+let loadController = null;
+let hashTimer = null;
+let restoring = decodeViewState(window.location.hash);
+
+const viewer = createViewer($('viewer'), {
+  onChange: () => {
+    ui.changed();
+    if (currentModel) scheduleHash();
+  },
+});
+const ui = bindViewerUi(viewer, {
+  getHeightUrl: () => (currentModel?.assets?.['height.npy'] ? api.assetHref(currentModel.assets['height.npy']) : null),
+  getPixelSizeUm: () => Number(currentModel?.report?.pixel_size_um) || null,
+  getImageWidth: () => Number(currentModel?.report?.image_size?.[0]) || null,
+  baseName: () => (tablet?.designation ?? `tablet-${tabletId}`).replace(/[^\w.-]+/g, '_'),
+});
+// For the console and for tests: the page's viewer.
+window.hammurabi = { viewer, ui };
+
+function scheduleHash() {
+  clearTimeout(hashTimer);
+  hashTimer = setTimeout(() => {
+    const state = viewer.getState();
+    state.model = currentModel.id;
+    history.replaceState(null, '', `#${encodeViewState(state)}`);
+  }, 250);
+}
+
+function renderCatalogue(t) {
+  document.title = `${t.designation} — Digital Hammurabi`;
+  $('title').textContent = t.designation;
+  const dl = $('catalogue');
+  dl.replaceChildren();
+  for (const [key, label] of CATALOGUE_FIELDS) {
+    const v = t[key];
+    if (v === null || v === undefined || v === '' || key === 'designation') continue;
+    dl.append(el('dt', {}, label), el('dd', {}, String(v)));
+  }
+  const dims = ['height_mm', 'width_mm', 'thickness_mm'].map((k) => t[k]);
+  if (dims.some((d) => d)) {
+    dl.append(el('dt', {}, 'Size'), el('dd', {}, `${dims.map((d) => (d ? d.toFixed(1) : '?')).join(' × ')} mm`));
+  }
+  $('links').replaceChildren(
+    el('li', {}, el('a', { href: api.tabletUrl(t.id) }, 'Catalogue record (JSON API)')),
+    el('li', {}, el('a', { href: api.iiifManifestUrl(t.id) }, 'IIIF manifest')),
+  );
+}
+
+function modelsOf(scan) {
+  return (scan.models ?? []).map((m) => (typeof m === 'object' ? m : { id: m }));
+}
+
+function jobText(job) {
+  if (!job) return 'no job';
+  const pct = job.progress != null ? ` ${Math.round(job.progress * 100)} %` : '';
+  if (job.state === 'failed') return `failed: ${job.error ?? 'unknown error'}`;
+  if (job.state === 'running') return `running${pct}${job.stage ? ` (${job.stage})` : ''}`;
+  return job.state;
+}
+
+function renderScans(scans) {
+  const list = $('scans');
+  list.replaceChildren();
+  const select = $('model-select');
+  select.replaceChildren();
+  for (const scan of scans) {
+    const job = scan.latest_job;
+    const li = el(
+      'li',
+      { 'data-scan': scan.id },
+      el('strong', {}, scan.face),
+      ` scanned ${formatDate(scan.created_at)} — `,
+      el('span', { class: `job job-${job?.state ?? 'none'}` }, jobText(job)),
+    );
+    list.append(li);
+    for (const m of modelsOf(scan)) {
+      const label = `${scan.face}, version ${m.version ?? m.id}${m.created_at ? ` (${formatDate(m.created_at)})` : ''}`;
+      select.append(el('option', { value: m.id }, label));
+    }
+  }
+  if (!select.options.length) select.append(el('option', { value: '' }, 'none yet'));
+  return scans.some((s) => ['queued', 'running'].includes(s.latest_job?.state));
+}
+
+function renderDownloads(model) {
+  const list = $('downloads');
+  list.replaceChildren();
+  if (!model) return;
+  const wanted = [
+    ['mesh.ply', 'Mesh, full resolution (PLY)'],
+    ['model.glb', 'Model for the web (GLB)'],
+    ['height.npy', 'Height map, µm (NumPy)'],
+    ['albedo.png', 'Albedo (PNG)'],
+    ['normals.png', 'Normal map (PNG)'],
+    ['report.json', 'Reconstruction report (JSON)'],
+  ];
+  for (const [name, label] of wanted) {
+    const url = model.assets?.[name];
+    if (url) list.append(el('li', {}, el('a', { href: api.assetHref(url), download: '' }, label)));
+  }
+  list.append(el('li', {}, el('a', { href: `${api.API_PREFIX}/models/${model.id}` }, 'Model record (JSON API)')));
+}
+
+async function showModel(modelId) {
+  loadController?.abort();
+  loadController = new AbortController();
+  const { signal } = loadController;
+  ui.stopTools();
+  $('progress').hidden = false;
+  $('progress-fill').style.width = '0%';
+  $('progress-label').textContent = 'Loading the model…';
+  try {
+    const model = await api.getModel(modelId);
+    if (signal.aborted) return;
+    const assets = Object.fromEntries(Object.entries(model.assets ?? {}).map(([k, v]) => [k, api.assetHref(v)]));
+    await viewer.load({
+      assets,
+      signal,
+      onProgress: (fraction, label) => {
+        $('progress-fill').style.width = `${Math.round(fraction * 100)}%`;
+        $('progress-label').textContent = `Loading the model: ${label}`;
+      },
+    });
+    if (signal.aborted) return;
+    currentModel = model;
+    $('model-select').value = String(model.id);
+    renderDownloads(model);
+    const restore = restoring;
+    restoring = null;
+    if (restore && (restore.state.model === null || restore.state.model === model.id)) {
+      viewer.setState(restore.state);
+      if (restore.ignored.length) {
+        $('notice').hidden = false;
+        $('notice').textContent = `Parts of the link could not be used: ${restore.ignored.join(', ')}`;
+      }
+    }
+    scheduleHash();
+    $('viewer').dataset.loaded = String(model.id);
+  } catch (err) {
+    if (err.name === 'AbortError') return;
+    showError($('tablet-error'), `The model could not be shown: ${err.message}`);
+  } finally {
+    if (!signal.aborted) $('progress').hidden = true;
+  }
+}
+
+async function refreshScans({ pickModel }) {
+  const scans = await api.tabletScans(tabletId);
+  const list = Array.isArray(scans) ? scans : (scans.items ?? []);
+  const busy = renderScans(list);
+  const all = list.flatMap(modelsOf);
+  $('empty').hidden = all.length > 0 || busy;
+  if (pickModel && all.length) {
+    const wanted = restoring?.state.model;
+    const latest = all.reduce((a, b) => ((b.version ?? b.id) > (a.version ?? a.id) ? b : a));
+    const target = all.find((m) => m.id === wanted) ?? latest;
+    await showModel(target.id);
+  } else if (currentModel) {
+    $('model-select').value = String(currentModel.id);
+  }
+  if (busy) {
+    setTimeout(() => refreshScans({ pickModel: !currentModel }).catch(reportError), JOB_POLL_MS);
+  }
+}
+
+function reportError(err) {
+  showError($('tablet-error'), err.status === 404 ? `No tablet with id ${tabletId}.` : err.message);
+}
+
+$('model-select').addEventListener('change', (e) => {
+  if (e.target.value) showModel(Number(e.target.value));
+});
+window.addEventListener('beforeunload', () => viewer.dispose());
+
+async function main() {
+  if (!tabletId) {
+    showError($('tablet-error'), 'No tablet given: open this page as tablet.html?id=N from the library.');
+    return;
+  }
+  try {
+    tablet = await api.getTablet(tabletId);
+    renderCatalogue(tablet);
+    await refreshScans({ pickModel: true });
+  } catch (err) {
+    reportError(err);
+  }
+}
+
+main();

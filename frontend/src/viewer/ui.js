@@ -1,0 +1,326 @@
+/**
+ * The viewer's controls on the tablet page: light widget and sliders, shading, views,
+ * measuring, screenshot, permalink and keyboard shortcuts. Binds DOM elements (by id, see
+ * tablet.html) to a viewer; owns no state of its own beyond what the viewer reports.
+ */
+import { profileChart } from './chart.js';
+import { actionForKey, SHORTCUTS } from './keyboard.js';
+import { clampPolar, compassLabel, RAKING_PRESETS, wrapAzimuth } from './light.js';
+import { createLightWidget } from './lightWidget.js';
+import { createPicker, distanceMm, pixelSizeFromMesh } from './measure.js';
+import { encodeViewState, SHADING_MODES } from './permalink.js';
+import { niceStep, profileToCsv, sampleProfile } from './profile.js';
+import { parseNpy } from './npy.js';
+import { fetchBytes } from './assets.js';
+
+const $ = (id) => document.getElementById(id);
+
+/**
+ * @param {ReturnType<import('./viewer.js').createViewer>} viewer
+ * @param {{getHeightUrl: () => string | null, getPixelSizeUm: () => number | null,
+ *   getImageWidth: () => number | null, baseName: () => string}} context
+ */
+export function bindViewerUi(viewer, context) {
+  const canvas = $('viewer');
+  const widget = createLightWidget($('light-widget'), {
+    onInput: (angles) => viewer.setLight(angles),
+  });
+
+  // --- light ------------------------------------------------------------------------------
+  const raking = $('raking');
+  RAKING_PRESETS.forEach((p, i) => {
+    const b = document.createElement('button');
+    b.type = 'button';
+    b.textContent = String(i + 1);
+    b.title = `Raking light from the ${p.label} (key ${i + 1})`;
+    b.setAttribute('aria-label', b.title);
+    b.addEventListener('click', () => viewer.setLight({ azimuthDeg: p.azimuthDeg, polarDeg: p.polarDeg }));
+    raking.append(b);
+  });
+  for (const id of ['intensity', 'ambient', 'gloss']) {
+    $(id).addEventListener('input', (e) => viewer.setLight({ [id]: Number(e.target.value) }));
+  }
+
+  // --- shading ----------------------------------------------------------------------------
+  $('mode').addEventListener('change', (e) => viewer.setShading({ mode: e.target.value }));
+  $('exaggeration').addEventListener('input', (e) => viewer.setShading({ exaggeration: Number(e.target.value) }));
+  $('curvature-scale').addEventListener('change', (e) =>
+    viewer.setShading({ curvatureScale: Number(e.target.value) }),
+  );
+  $('quality-map').addEventListener('change', (e) => viewer.setShading({ quality: e.target.value }));
+
+  // --- views ------------------------------------------------------------------------------
+  for (const b of document.querySelectorAll('[data-view]')) {
+    b.addEventListener('click', () => viewer.setView(b.dataset.view));
+  }
+  $('reset').addEventListener('click', () => viewer.resetView());
+  $('projection').addEventListener('click', toggleProjection);
+  function toggleProjection() {
+    viewer.setProjection(viewer.projection === 'orthographic' ? 'perspective' : 'orthographic');
+  }
+
+  // --- measuring --------------------------------------------------------------------------
+  let tool = null; // 'distance' | 'profile' | null
+  let lastProfile = null;
+  const picker = createPicker(viewer, canvas, {
+    onPoint: (points) => {
+      if (points.length === 1) setReadout(tool === 'profile' ? 'Click the end of the profile line.' : 'Click the second point.');
+    },
+    onDone: (points) => (tool === 'profile' ? showProfile(points) : showDistance(points)),
+  });
+  function setTool(next) {
+    tool = tool === next ? null : next;
+    $('measure').setAttribute('aria-pressed', String(tool === 'distance'));
+    $('profile').setAttribute('aria-pressed', String(tool === 'profile'));
+    if (tool) {
+      picker.start();
+      setReadout(tool === 'profile' ? 'Click the start of the profile line.' : 'Click the first point.');
+    } else {
+      picker.stop();
+      setReadout('');
+    }
+  }
+  function setReadout(text) {
+    $('readout').textContent = text;
+  }
+  function showDistance(points) {
+    const d = distanceMm(points[0], points[1]);
+    setReadout(`Distance: ${d.toFixed(2)} mm`);
+    $('readout').dataset.distanceMm = String(d);
+  }
+  let heightGrid = null; // {url, grid}
+  async function loadHeightGrid() {
+    const url = context.getHeightUrl();
+    if (!url) throw new Error('this model has no height.npy, so no profile can be drawn');
+    if (heightGrid?.url === url) return heightGrid.grid;
+    setReadout('Loading height.npy…');
+    const { shape, data } = parseNpy(await fetchBytes(url));
+    let pixelSizeUm = context.getPixelSizeUm();
+    if (!pixelSizeUm) {
+      const g = viewer.model.mesh.geometry;
+      pixelSizeUm = pixelSizeFromMesh(g.attributes.position.array, g.attributes.uv.array, shape[1]);
+    }
+    const grid = { heightUm: data, rows: shape[0], cols: shape[1], pixelSizeUm };
+    heightGrid = { url, grid };
+    return grid;
+  }
+  async function showProfile(points) {
+    try {
+      const grid = await loadHeightGrid();
+      lastProfile = sampleProfile(grid, points[0], points[1]);
+      const chart = $('profile-chart');
+      chart.replaceChildren(profileChart(lastProfile));
+      $('profile-panel').hidden = false;
+      setReadout(`Profile: ${lastProfile.lengthMm.toFixed(2)} mm, ${lastProfile.heightUm.length} samples`);
+    } catch (err) {
+      setReadout(`Profile: ${err.message}`);
+    }
+  }
+  $('measure').addEventListener('click', () => setTool('distance'));
+  $('profile').addEventListener('click', () => setTool('profile'));
+  $('profile-close').addEventListener('click', () => {
+    $('profile-panel').hidden = true;
+  });
+  $('profile-csv').addEventListener('click', () => {
+    if (lastProfile) download(new Blob([profileToCsv(lastProfile)], { type: 'text/csv' }), `${context.baseName()}-profile.csv`);
+  });
+
+  // --- share ------------------------------------------------------------------------------
+  async function screenshot() {
+    const width = Math.round(Number($('shot-w').value));
+    const height = Math.round(Number($('shot-h').value));
+    try {
+      const blob = await viewer.screenshot({ width, height });
+      download(blob, `${context.baseName()}-${viewer.shading.mode}.png`);
+    } catch (err) {
+      showNotice(`Screenshot failed: ${err.message}`);
+    }
+  }
+  function permalink() {
+    const url = new URL(window.location.href);
+    url.hash = encodeViewState(viewer.getState());
+    $('permalink-text').value = url.toString();
+    $('permalink-text').select();
+    navigator.clipboard?.writeText(url.toString()).catch(() => {});
+    return url.toString();
+  }
+  $('screenshot').addEventListener('click', screenshot);
+  $('permalink').addEventListener('click', permalink);
+
+  // --- keyboard ---------------------------------------------------------------------------
+  const table = $('help-table');
+  for (const s of SHORTCUTS) {
+    const tr = document.createElement('tr');
+    const th = document.createElement('th');
+    th.textContent = s.label;
+    const td = document.createElement('td');
+    td.textContent = s.help;
+    tr.append(th, td);
+    table.append(tr);
+  }
+  $('help-button').addEventListener('click', () => $('help').showModal());
+
+  function onKey(event) {
+    const hit = actionForKey(event);
+    if (!hit || !viewer.model) return;
+    const step = hit.fine ? 1 : 5;
+    const l = viewer.light;
+    const [verb, arg] = hit.action.split(':');
+    switch (verb) {
+      case 'light-azimuth':
+        viewer.setLight({ azimuthDeg: wrapAzimuth(l.azimuthDeg + (hit.key === 'ArrowRight' ? step : -step)) });
+        break;
+      case 'light-polar':
+        viewer.setLight({ polarDeg: clampPolar(l.polarDeg + (hit.key === 'ArrowDown' ? step : -step)) });
+        break;
+      case 'raking': {
+        const p = RAKING_PRESETS[Number(hit.key) - 1];
+        viewer.setLight({ azimuthDeg: p.azimuthDeg, polarDeg: p.polarDeg });
+        break;
+      }
+      case 'overhead':
+        viewer.setLight({ polarDeg: 0 });
+        break;
+      case 'brighter':
+        viewer.setLight({ intensity: Math.min(2, l.intensity + 0.1) });
+        break;
+      case 'dimmer':
+        viewer.setLight({ intensity: Math.max(0, l.intensity - 0.1) });
+        break;
+      case 'gloss':
+        viewer.setLight({ gloss: l.gloss > 0 ? 0 : 0.5 });
+        break;
+      case 'mode':
+        if (arg === 'curvature' && viewer.shading.mode === 'curvature') {
+          const n = $('curvature-scale').options.length || 1;
+          viewer.setShading({ curvatureScale: (viewer.shading.curvatureScale + 1) % n });
+        } else {
+          viewer.setShading({ mode: arg });
+        }
+        break;
+      case 'view':
+        viewer.setView(arg);
+        break;
+      case 'reset':
+        viewer.resetView();
+        break;
+      case 'projection':
+        toggleProjection();
+        break;
+      case 'measure':
+        setTool('distance');
+        break;
+      case 'profile':
+        setTool('profile');
+        break;
+      case 'cancel':
+        if (tool) setTool(tool);
+        $('profile-panel').hidden = true;
+        break;
+      case 'screenshot':
+        screenshot();
+        break;
+      case 'permalink':
+        permalink();
+        break;
+      case 'help':
+        $('help').showModal();
+        break;
+      default:
+        return;
+    }
+    event.preventDefault();
+  }
+  window.addEventListener('keydown', onKey);
+
+  // --- reflect the viewer's state ---------------------------------------------------------
+  let scheduled = false;
+  function sync() {
+    scheduled = false;
+    const l = viewer.light;
+    widget.draw(l);
+    $('light-readout').textContent =
+      `azimuth ${l.azimuthDeg.toFixed(0)}° (from the ${compassLabel(l.azimuthDeg)}), polar ${l.polarDeg.toFixed(0)}°`;
+    $('intensity').value = String(l.intensity);
+    $('ambient').value = String(l.ambient);
+    $('gloss').value = String(l.gloss);
+    const s = viewer.shading;
+    $('mode').value = s.mode;
+    $('exaggeration').value = String(s.exaggeration);
+    $('curvature-scale-row').hidden = s.mode !== 'curvature';
+    $('quality-row').hidden = s.mode !== 'quality';
+    fillSelect($('curvature-scale'), (viewer.model?.assets.curvature || []).map((c, i) => [String(i), c.label]), String(s.curvatureScale));
+    fillSelect($('quality-map'), (viewer.model?.assets.quality || []).map((q) => [q.name, q.name]), s.quality ?? '');
+    $('projection').setAttribute('aria-pressed', String(viewer.projection === 'perspective'));
+    $('projection').textContent = viewer.projection === 'perspective' ? 'Orthographic' : 'Perspective';
+    const missing = viewer.missingMessage();
+    showNotice(missing);
+    updateScaleBar();
+    canvas.dataset.mode = s.mode;
+    canvas.dataset.azimuth = l.azimuthDeg.toFixed(3);
+    canvas.dataset.polar = l.polarDeg.toFixed(3);
+  }
+  function showNotice(text) {
+    $('notice').hidden = !text;
+    $('notice').textContent = text ?? '';
+  }
+  function updateScaleBar() {
+    const mmPerPx = viewer.mmPerPixel();
+    if (!(mmPerPx > 0) || !viewer.model) {
+      $('scalebar').hidden = true;
+      return;
+    }
+    const mm = niceStep(mmPerPx * 120);
+    $('scalebar').hidden = false;
+    $('scalebar').querySelector('.bar').style.width = `${mm / mmPerPx}px`;
+    $('scalebar').querySelector('span').textContent = mm >= 1 ? `${mm} mm` : `${Math.round(mm * 1000)} µm`;
+  }
+
+  return {
+    /** Call from the viewer's onChange. */
+    changed() {
+      if (scheduled) return;
+      scheduled = true;
+      queueMicrotask(sync);
+    },
+    stopTools() {
+      if (tool) setTool(tool);
+      heightGrid = null;
+      $('profile-panel').hidden = true;
+    },
+    permalink,
+    dispose() {
+      window.removeEventListener('keydown', onKey);
+      picker.dispose();
+      widget.dispose();
+    },
+  };
+}
+
+function fillSelect(select, entries, value) {
+  const key = entries.map((e) => e.join('=')).join('|');
+  if (select.dataset.key !== key) {
+    select.replaceChildren(
+      ...entries.map(([v, label]) => {
+        const o = document.createElement('option');
+        o.value = v;
+        o.textContent = label;
+        return o;
+      }),
+    );
+    select.dataset.key = key;
+  }
+  if (entries.some(([v]) => v === value)) select.value = value;
+}
+
+function download(blob, filename) {
+  const a = document.createElement('a');
+  a.href = URL.createObjectURL(blob);
+  a.download = filename;
+  document.body.append(a);
+  a.click();
+  a.remove();
+  setTimeout(() => URL.revokeObjectURL(a.href), 10000);
+}
+
+export { SHADING_MODES };
