@@ -100,13 +100,13 @@ class DirectoryContainer(Container):
                 try:
                     fd = os.open(part, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW, dir_fd=dir_fd)
                 except OSError as exc:
-                    raise _explain(exc, part, folder=True) from None
+                    raise _explain(exc, part, folder=True, dir_fd=dir_fd) from None
                 os.close(dir_fd)
                 dir_fd = fd
             try:
                 st = os.stat(parts[-1], dir_fd=dir_fd, follow_symlinks=False)
             except OSError as exc:
-                raise _explain(exc, parts[-1], folder=False) from None
+                raise _explain(exc, parts[-1], folder=False, dir_fd=dir_fd) from None
             if stat.S_ISLNK(st.st_mode):
                 raise ContainerError("is a symbolic link; images must be regular files")
             if not stat.S_ISREG(st.st_mode):
@@ -116,7 +116,7 @@ class DirectoryContainer(Container):
             try:
                 fd = os.open(parts[-1], flags, dir_fd=dir_fd)
             except OSError as exc:
-                raise _explain(exc, parts[-1], folder=False) from None
+                raise _explain(exc, parts[-1], folder=False, dir_fd=dir_fd) from None
         finally:
             os.close(dir_fd)
         if not stat.S_ISREG(os.fstat(fd).st_mode):
@@ -137,10 +137,14 @@ class DirectoryContainer(Container):
         return data
 
 
-def _explain(exc: OSError, part: str, *, folder: bool) -> ContainerError:
+def _explain(exc: OSError, part: str, *, folder: bool, dir_fd: int) -> ContainerError:
     if exc.errno == errno.ENOENT:
         return ContainerError("does not exist")
-    if exc.errno in (errno.ELOOP, errno.EMLINK):
+    try:
+        is_link = stat.S_ISLNK(os.stat(part, dir_fd=dir_fd, follow_symlinks=False).st_mode)
+    except OSError:
+        is_link = False
+    if is_link or exc.errno == errno.ELOOP:
         return ContainerError(f"goes through a symbolic link ({part!r}); links are not allowed")
     if exc.errno == errno.ENOTDIR:
         return ContainerError(f"{part!r} is not a folder" if folder else "is not a regular file")
@@ -148,12 +152,15 @@ def _explain(exc: OSError, part: str, *, folder: bool) -> ContainerError:
 
 
 class ZipContainer(Container):
-    def __init__(self, archive: zipfile.ZipFile, prefix: str, limits: Limits):
+    def __init__(
+        self, archive: zipfile.ZipFile, prefix: str, limits: Limits, *, archive_bytes: int
+    ):
         super().__init__(limits)
         self.archive = archive
         self.prefix = prefix
         self.manifest_path = prefix + MANIFEST
         self._entries: dict[str, list[zipfile.ZipInfo]] = {}
+        self._archive_bytes = archive_bytes
         for info in archive.infolist():
             self._entries.setdefault(info.filename, []).append(info)
 
@@ -180,7 +187,9 @@ class ZipContainer(Container):
         info = self._info(name)
         lim = self.limits
         cap = lim.max_file_bytes if limit is None else min(limit, lim.max_file_bytes)
-        ratio_cap = max(lim.max_ratio * info.compress_size, lim.ratio_floor_bytes)
+        # A lying header cannot buy a larger allowance: no member is larger than the archive.
+        compressed = min(info.compress_size, self._archive_bytes)
+        ratio_cap = max(lim.max_ratio * compressed, lim.ratio_floor_bytes)
         want = limit if limit is not None else cap + 1
         chunks: list[bytes] = []
         got = 0
@@ -195,7 +204,7 @@ class ZipContainer(Container):
                     if got > ratio_cap:
                         raise ContainerError(
                             f"inflates more than max_ratio = {lim.max_ratio:g} times its "
-                            f"compressed size of {info.compress_size} bytes (a zip bomb?)"
+                            f"compressed size of {compressed} bytes (a zip bomb?)"
                         )
                     if got > cap:
                         raise ContainerError(f"inflates to more than max_file_bytes = {cap}")
@@ -234,7 +243,7 @@ def open_container(
     if prefix is None:
         archive.close()
         return None, problems
-    return ZipContainer(archive, prefix, limits), problems
+    return ZipContainer(archive, prefix, limits, archive_bytes=p.stat().st_size), problems
 
 
 def _zip_prefix(archive: zipfile.ZipFile) -> tuple[str | None, list[Problem]]:

@@ -141,6 +141,8 @@ def decode_png_pillow(data: bytes) -> np.ndarray:
                 array = np.array(img)
     except Image.DecompressionBombError as exc:
         raise ImageError(f"is too large to decode ({exc})") from None
+    except Image.UnidentifiedImageError:
+        raise ImageError("cannot be decoded as PNG (not recognised)") from None
     except Exception as exc:  # noqa: BLE001 - Pillow raises OSError, SyntaxError, ValueError...
         raise ImageError(f"cannot be decoded as PNG ({type(exc).__name__}: {exc})") from None
     if array.dtype == np.int32:  # Pillow < 10 gave 16-bit grey as mode "I"

@@ -186,8 +186,8 @@ def _check_images(
     frames = manifest_value.get("frames") if isinstance(manifest_value, dict) else None
     camera = manifest_value.get("camera") if isinstance(manifest_value, dict) else None
     camera = camera if isinstance(camera, dict) else {}
-    problems = check_manifest({"camera": camera}) if camera else []
-    camera_ok = not any(p.where.startswith("camera.") for p in problems)
+    camera_problems = check_manifest({"camera": camera})
+    camera_ok = bool(camera) and not any(p.where.startswith("camera.") for p in camera_problems)
     size = (int(camera["width"]), int(camera["height"])) if camera_ok else None
     bit_depth = int(camera["bit_depth"]) if camera_ok else None
     infos: dict[int, ImageInfo] = {}
@@ -245,7 +245,8 @@ def _load(path: str | os.PathLike, limits: Limits, *, decode_all: bool):
     if container is None:
         return None, None, {}, problems
     try:
-        data = container.read(container.manifest_path)
+        # One byte over the cap is enough to know it is too large.
+        data = container.read(container.manifest_path, limit=limits.max_manifest_bytes + 1)
     except ContainerError as exc:
         where = container.manifest_path
         return container, None, {}, [*problems, Problem(where, str(exc))]
