@@ -150,7 +150,7 @@ class Storage(ABC):
                 os.fsync(fh.fileno())
             os.replace(tmp, dest)
         except OSError as exc:
-            raise _os_error(exc, key) from exc
+            raise storage_error_from_os(exc, key) from exc
         finally:
             tmp.unlink(missing_ok=True)
         return dest
@@ -186,7 +186,7 @@ class Storage(ABC):
         return len(keys)
 
 
-def _os_error(exc: OSError, key: str | None) -> StorageError:
+def storage_error_from_os(exc: OSError, key: str | None) -> StorageError:
     if exc.errno in _FULL_ERRNOS:
         return StorageError("storage is full: nothing was stored", key=key, status_code=507)
     return StorageError(f"storage failed: {exc.strerror or exc}", key=key, status_code=503)
@@ -230,7 +230,7 @@ class LocalStorage(Storage):
             os.replace(tmp, path)
             _fsync_dir(path.parent)
         except OSError as exc:
-            raise _os_error(exc, key) from exc
+            raise storage_error_from_os(exc, key) from exc
         finally:
             tmp.unlink(missing_ok=True)
         return self.stat(key)
@@ -268,7 +268,7 @@ class LocalStorage(Storage):
         except FileNotFoundError:
             raise ObjectNotFound(key) from None
         except OSError as exc:
-            raise _os_error(exc, key) from exc
+            raise storage_error_from_os(exc, key) from exc
         if not path.is_file():
             raise ObjectNotFound(key)
         sha = self._read_meta(key, st.st_size)
@@ -280,7 +280,7 @@ class LocalStorage(Storage):
                 self._tmp.mkdir(parents=True, exist_ok=True)
                 self._write_meta(key, sha, st.st_size)
             except OSError as exc:
-                raise _os_error(exc, key) from exc
+                raise storage_error_from_os(exc, key) from exc
         mtime = datetime.fromtimestamp(st.st_mtime, tz=UTC)
         return ObjectStat(key=key, size_bytes=st.st_size, etag=sha, mtime=mtime)
 
@@ -301,7 +301,7 @@ class LocalStorage(Storage):
         except FileNotFoundError:
             raise ObjectNotFound(key) from None
         except OSError as exc:
-            raise _os_error(exc, key) from exc
+            raise storage_error_from_os(exc, key) from exc
         fh.seek(start)
         return _iter_file(fh, stop - start)
 
@@ -310,7 +310,7 @@ class LocalStorage(Storage):
             self._path(key).unlink(missing_ok=True)
             self._meta_path(key).unlink(missing_ok=True)
         except OSError as exc:
-            raise _os_error(exc, key) from exc
+            raise storage_error_from_os(exc, key) from exc
 
     def list(self, prefix: str = "") -> list[str]:
         # Walk only the directory the prefix points into, not the whole store.

@@ -172,6 +172,11 @@ class Upload(Base):
     storage_key: Mapped[str | None] = mapped_column(String(500))
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
+    # Optimistic lock: concurrent chunk requests merge their ranges without losing one
+    # (an UPDATE of a stale revision raises StaleDataError and is retried; backend.uploads).
+    revision: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
+
+    __mapper_args__ = {"version_id_col": revision}
 
 
 class Scan(Base):

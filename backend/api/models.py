@@ -1,0 +1,257 @@
+"""Model versions and their files: ``GET /models/{id}`` and ``GET /models/{id}/assets/{name}``.
+
+Asset URLs are stable per model version (a model id is one version, never overwritten), so
+responses carry a strong ETag (the file's SHA-256) and ``Cache-Control: immutable``; they
+answer ``If-None-Match`` with 304 and a single HTTP ``Range`` with 206 (unsatisfiable: 416).
+Private tablets' models are served only to those who may read the tablet (else 404).
+
+Also home of what the other routers of this family share: the storage dependency, the route
+class that turns :class:`StorageError` into ``{detail, where}`` JSON (507/503), and the
+access check for records reached through a tablet.
+"""
+
+from __future__ import annotations
+
+import re
+from datetime import UTC, datetime
+from email.utils import format_datetime, parsedate_to_datetime
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Path, Request, Response
+from fastapi.responses import JSONResponse, StreamingResponse
+from fastapi.routing import APIRoute
+from pydantic import BaseModel
+from sqlalchemy.orm import Session
+
+from backend import crud
+from backend.api.deps import OptionalUser, SessionDep, SettingsDep
+from backend.errors import error_body, forbidden, not_found, unauthorized
+from backend.storage import LocalStorage, S3Storage, Storage, StorageError
+from backend.tables import Model, Scan, Tablet, User
+
+CONTENT_TYPES = {
+    ".glb": "model/gltf-binary",
+    ".gltf": "model/gltf+json",
+    ".ply": "application/ply",
+    ".png": "image/png",
+    ".jpg": "image/jpeg",
+    ".json": "application/json",
+    ".npy": "application/octet-stream",
+}
+ONE_YEAR_S = 365 * 24 * 3600
+
+
+class StorageErrorRoute(APIRoute):
+    """Answers a :class:`StorageError` as JSON with its status (507 full, 503 unavailable)."""
+
+    def get_route_handler(self):
+        handler = super().get_route_handler()
+
+        async def handle(request: Request) -> Response:
+            try:
+                return await handler(request)
+            except StorageError as exc:
+                headers = {"Retry-After": "30"} if exc.status_code == 503 else None
+                return JSONResponse(
+                    error_body(exc.message, "storage"), status_code=exc.status_code, headers=headers
+                )
+
+        return handle
+
+
+def storage_from_settings(settings: Any) -> Storage:
+    if settings.storage_backend == "s3":
+        secret = settings.s3_secret_access_key
+        return S3Storage(
+            bucket=settings.s3_bucket,
+            endpoint_url=settings.s3_endpoint_url,
+            access_key_id=settings.s3_access_key_id,
+            secret_access_key=secret.get_secret_value() if secret else None,
+            region=settings.s3_region,
+        )
+    return LocalStorage(settings.resolved_storage_dir)
+
+
+def get_storage(request: Request) -> Storage:
+    """The app's storage (``app.state.storage``; made from settings on first use)."""
+    store = getattr(request.app.state, "storage", None)
+    if store is None:
+        store = storage_from_settings(request.app.state.settings)
+        request.app.state.storage = store
+    return store
+
+
+StorageDep = Annotated[Storage, Depends(get_storage)]
+
+
+def check_tablet_access(
+    session: Session, user: User | None, tablet_id: int, *, what: str, where: str, edit: bool
+) -> Tablet:
+    """The tablet of a scan/job/model/upload, or 404 (not visible) / 401 / 403 (not editable)."""
+    tablet = session.get(Tablet, tablet_id)
+    if tablet is None or not crud.can_read_tablet(user, tablet):
+        raise not_found(what, where=where)
+    if edit:
+        if user is None:
+            raise unauthorized()
+        if not crud.can_edit_tablet(user, tablet):
+            raise forbidden(f"{what} belongs to another institution's tablet", where=where)
+    return tablet
+
+
+class ModelOut(BaseModel):
+    id: int
+    scan_id: int | None
+    tablet_id: int
+    job_id: int
+    version: int
+    created_at: datetime
+    report: dict[str, Any]
+    assets: dict[str, str]
+
+    @classmethod
+    def of(cls, model: Model, *, api_prefix: str) -> ModelOut:
+        base = f"{api_prefix}/models/{model.id}/assets"
+        return cls(
+            id=model.id,
+            scan_id=model.scan_id,
+            tablet_id=model.tablet_id,
+            job_id=model.job_id,
+            version=model.version,
+            created_at=model.created_at,
+            report=model.report or {},
+            assets={name: f"{base}/{name}" for name in sorted(model.assets or {})},
+        )
+
+
+router = APIRouter(prefix="/models", tags=["models"], route_class=StorageErrorRoute)
+
+
+def get_readable_model(
+    model_id: Annotated[int, Path(ge=1)], session: SessionDep, user: OptionalUser
+) -> Model:
+    model = session.get(Model, model_id)
+    if model is None:
+        raise not_found(f"model {model_id}", where="model_id")
+    tablet = check_tablet_access(
+        session, user, model.tablet_id, what=f"model {model_id}", where="model_id", edit=False
+    )
+    model.is_public = tablet.is_public  # type: ignore[attr-defined]  # for Cache-Control
+    return model
+
+
+ReadableModel = Annotated[Model, Depends(get_readable_model)]
+
+
+@router.get("/{model_id}", response_model=ModelOut)
+def read_model(model: ReadableModel, settings: SettingsDep) -> ModelOut:
+    return ModelOut.of(model, api_prefix=settings.api_prefix)
+
+
+_RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
+
+
+def parse_range(header: str, size_bytes: int) -> tuple[int, int] | None:
+    """One ``bytes=`` range → half-open ``(start, end)``; None: ignore the header (serve all).
+
+    Raises ValueError when the range cannot be satisfied (416).
+    """
+    match = _RANGE.match(header.strip().replace(" ", ""))
+    if match is None:
+        return None  # several ranges or another unit: RFC 9110 lets us send the whole file
+    first, last = match.groups()
+    if not first and not last:
+        return None
+    if not first:  # suffix: the last N bytes
+        n = int(last)
+        if n == 0 or size_bytes == 0:
+            raise ValueError("empty suffix range")
+        return max(0, size_bytes - n), size_bytes
+    start = int(first)
+    end = size_bytes if not last else min(int(last) + 1, size_bytes)
+    if last and int(last) < start:
+        return None  # syntactically invalid: ignored
+    if start >= size_bytes:
+        raise ValueError("range starts past the end")
+    return start, end
+
+
+def _etag_matches(header: str, etag: str) -> bool:
+    if header.strip() == "*":
+        return True
+    # Weak comparison (RFC 9110 13.1.2): W/"x" matches "x".
+    tags = [t.strip().removeprefix("W/") for t in header.split(",")]
+    return etag in tags
+
+
+@router.api_route("/{model_id}/assets/{name:path}", methods=["GET", "HEAD"])
+def read_asset(name: str, model: ReadableModel, request: Request, storage: StorageDep) -> Response:
+    """A file of the model version, with caching and Range support."""
+    info = (model.assets or {}).get(name)
+    if info is None:
+        raise not_found(f"asset {name!r} of model {model.id}", where="name")
+    size = int(info["size_bytes"])
+    etag = f'"{info["sha256"]}"'
+    last_modified = model.created_at
+    if last_modified.tzinfo is None:
+        last_modified = last_modified.replace(tzinfo=UTC)
+    visibility = "public" if getattr(model, "is_public", False) else "private"
+    headers = {
+        "ETag": etag,
+        "Last-Modified": format_datetime(last_modified.astimezone(UTC), usegmt=True),
+        "Cache-Control": f"{visibility}, max-age={ONE_YEAR_S}, immutable",
+        "Accept-Ranges": "bytes",
+    }
+    if _not_modified(request, etag, last_modified):
+        return Response(status_code=304, headers=headers)
+    media_type = CONTENT_TYPES.get(
+        "." + name.rsplit(".", 1)[-1].lower(), "application/octet-stream"
+    )
+    headers["Content-Disposition"] = f'inline; filename="{name.rsplit("/", 1)[-1]}"'
+    start, end, status = 0, size, 200
+    range_header = request.headers.get("range")
+    if_range = request.headers.get("if-range")
+    if range_header and (if_range is None or if_range.strip() == etag):
+        try:
+            parsed = parse_range(range_header, size)
+        except ValueError:
+            return JSONResponse(
+                error_body(
+                    f"range {range_header!r} is outside the {size} bytes of {name}", "range"
+                ),
+                status_code=416,
+                headers={**headers, "Content-Range": f"bytes */{size}"},
+            )
+        if parsed is not None:
+            start, end = parsed
+            status = 206
+            headers["Content-Range"] = f"bytes {start}-{end - 1}/{size}"
+    headers["Content-Length"] = str(end - start)
+    if request.method == "HEAD":
+        return Response(status_code=status, headers=headers, media_type=media_type)
+    body = storage.open_range(f"{model.storage_prefix}/{name}", start, end)
+    return StreamingResponse(body, status_code=status, headers=headers, media_type=media_type)
+
+
+def _not_modified(request: Request, etag: str, last_modified: datetime) -> bool:
+    if_none_match = request.headers.get("if-none-match")
+    if if_none_match is not None:
+        return _etag_matches(if_none_match, etag)
+    since = request.headers.get("if-modified-since")
+    if since:
+        try:
+            when = parsedate_to_datetime(since)
+        except (TypeError, ValueError):
+            return False
+        if when.tzinfo is None:
+            when = when.replace(tzinfo=UTC)
+        return last_modified.replace(microsecond=0) <= when
+    return False
+
+
+def models_of_scan(session: Session, scan: Scan) -> list[Model]:
+    from sqlalchemy import select
+
+    return list(
+        session.scalars(select(Model).where(Model.scan_id == scan.id).order_by(Model.version))
+    )

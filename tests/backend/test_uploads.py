@@ -1,0 +1,311 @@
+"""The resumable upload protocol through the API (SQLite; test_uploads_databases.py runs the
+main path on PostgreSQL as well)."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import random
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from backend.jobs import RECONSTRUCT_TASK, RecordingDispatcher
+from backend.main import create_app
+from backend.storage import LocalStorage
+from worker.bundle import write_bundle
+
+API = "/api/v1"
+
+
+def bundle_bytes(tmp_path: Path, *, scan_id: str | None = "rig-0001", face: str = "obverse"):
+    """A small valid bundle ZIP: four photometric frames of 16 x 12 8-bit pixels."""
+    scan = {"face": face} | ({"id": scan_id} if scan_id else {})
+    manifest = {
+        "format": "cuneiform-scan",
+        "version": 1,
+        "scan": scan,
+        "camera": {"width": 16, "height": 12, "pixel_size_um": 50, "bit_depth": 8},
+        "source": {"polar_deg": 45},
+        "frames": [
+            {"file": f"p{i}.png", "kind": "photometric", "azimuth_deg": 90 * i} for i in range(4)
+        ],
+    }
+    rng = np.random.default_rng(7)
+    images = {f"p{i}.png": rng.integers(0, 255, (12, 16), dtype=np.uint8) for i in range(4)}
+    out = tmp_path / f"bundle-{random.randrange(1 << 30)}.zip"
+    return write_bundle(out, manifest, images, as_zip=True).read_bytes()
+
+
+def invalid_bundle_bytes() -> bytes:
+    """A ZIP whose manifest has three independent problems."""
+    manifest = {
+        "format": "cuneiform-scan",
+        "version": 1,
+        "scan": {"face": "sideways"},
+        "camera": {"width": 16, "height": 12, "pixel_size_um": -1, "bit_depth": 8},
+        "source": {"polar_deg": 45},
+        "frames": [{"file": "missing.png", "kind": "photometric", "azimuth_deg": 0}],
+    }
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("manifest.json", json.dumps(manifest))
+    return buffer.getvalue()
+
+
+def sha(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def create(client, world, data: bytes, *, role="staff_own", tablet=None, filename="scan.zip"):
+    body = {
+        "tablet_id": tablet or world.private_a,
+        "filename": filename,
+        "size_bytes": len(data),
+    }
+    return client.post(f"{API}/uploads", json=body, headers=world.headers(role))
+
+
+def put(client, world, upload_id, offset, chunk, role="staff_own"):
+    return client.put(
+        f"{API}/uploads/{upload_id}/chunks",
+        params={"offset": offset},
+        content=chunk,
+        headers=world.headers(role) | {"Content-Type": "application/octet-stream"},
+    )
+
+
+def complete(client, world, upload_id, digest, role="staff_own"):
+    return client.post(
+        f"{API}/uploads/{upload_id}/complete", json={"sha256": digest}, headers=world.headers(role)
+    )
+
+
+def upload_all(client, world, data: bytes, *, chunk=1000, tablet=None):
+    response = create(client, world, data, tablet=tablet)
+    assert response.status_code == 201, response.text
+    upload_id = response.json()["id"]
+    for offset in range(0, len(data), chunk):
+        assert (
+            put(client, world, upload_id, offset, data[offset : offset + chunk]).status_code == 200
+        )
+    return upload_id, complete(client, world, upload_id, sha(data))
+
+
+@pytest.fixture
+def db_url(sqlite_url) -> str:
+    return sqlite_url
+
+
+@pytest.fixture
+def dispatcher(app) -> RecordingDispatcher:
+    app.state.dispatcher = RecordingDispatcher()
+    return app.state.dispatcher
+
+
+def test_chunks_in_any_order_repeated_then_complete(client, world, dispatcher, tmp_path, app):
+    data = bundle_bytes(tmp_path)
+    created = create(client, world, data)
+    assert created.status_code == 201
+    state = created.json()
+    assert state["received_bytes"] == 0 and state["ranges"] == []
+    assert state["missing"] == [[0, len(data)]] and state["state"] == "open"
+    assert state["chunk_size"] == app.state.settings.upload_chunk_size_bytes
+    upload_id = state["id"]
+
+    chunk = 512
+    offsets = list(range(0, len(data), chunk))
+    random.Random(3).shuffle(offsets)
+    half = offsets[: len(offsets) // 2]
+    for offset in half + half[:2]:  # repeating chunks is harmless
+        assert (
+            put(client, world, upload_id, offset, data[offset : offset + chunk]).status_code == 200
+        )
+    state = client.get(f"{API}/uploads/{upload_id}", headers=world.headers("staff_own")).json()
+    expected = sum(len(data[o : o + chunk]) for o in half)
+    assert state["received_bytes"] == expected
+    assert sum(hi - lo for lo, hi in state["missing"]) == len(data) - expected
+
+    early = complete(client, world, upload_id, sha(data))
+    assert early.status_code == 409 and early.json()["where"] == "ranges"
+
+    for lo, hi in state["missing"]:  # resume: send exactly what the server says is missing
+        assert put(client, world, upload_id, lo, data[lo:hi]).status_code == 200
+    done = complete(client, world, upload_id, sha(data))
+    assert done.status_code == 201, done.text
+    scan, job = done.json()["scan"], done.json()["job"]
+    assert scan["face"] == "obverse" and scan["scan_uid"] == "rig-0001"
+    assert scan["tablet_id"] == world.private_a and scan["size_bytes"] == len(data)
+    assert job["state"] == "queued" and job["scan_id"] == scan["id"]
+    assert scan["latest_job"]["id"] == job["id"]
+    assert dispatcher.sent == [(RECONSTRUCT_TASK, [job["id"]], f"job-{job['id']}-attempt-1")]
+
+    store = LocalStorage(app.state.settings.resolved_storage_dir)
+    (key,) = store.list("scans/")
+    assert store.read_bytes(key) == data and store.stat(key).etag == sha(data)
+    assert list((app.state.settings.data_dir / "uploads").iterdir()) == []  # part file gone
+    final = client.get(f"{API}/uploads/{upload_id}", headers=world.headers("staff_own")).json()
+    assert final["state"] == "complete" and final["missing"] == []
+
+    again = complete(client, world, upload_id, sha(data))  # a lost response, asked again
+    assert again.status_code == 200 and again.json()["scan"]["id"] == scan["id"]
+    assert len(dispatcher.sent) == 1
+
+
+def test_same_scan_id_twice_is_the_same_scan(client, world, dispatcher, tmp_path, app):
+    data = bundle_bytes(tmp_path, scan_id="rig-same")
+    _, first = upload_all(client, world, data)
+    assert first.status_code == 201
+    _, second = upload_all(client, world, data, chunk=1000)
+    assert second.status_code == 200
+    assert second.json()["scan"]["id"] == first.json()["scan"]["id"]
+    assert second.json()["job"]["id"] == first.json()["job"]["id"]
+    assert len(dispatcher.sent) == 1
+    assert len(LocalStorage(app.state.settings.resolved_storage_dir).list("scans/")) == 1
+    scans = client.get(f"{API}/tablets/{world.private_a}/scans", headers=world.headers("admin"))
+    assert [s["id"] for s in scans.json()] == [first.json()["scan"]["id"]]
+
+    # Without scan.id every upload is a new scan.
+    plain = bundle_bytes(tmp_path, scan_id=None, face="reverse")
+    assert upload_all(client, world, plain)[1].status_code == 201
+    assert upload_all(client, world, plain)[1].status_code == 201
+
+
+def test_same_scan_id_on_another_tablet_is_refused(client, world, dispatcher, tmp_path):
+    data = bundle_bytes(tmp_path, scan_id="rig-x")
+    assert upload_all(client, world, data)[1].status_code == 201
+    upload_id, response = upload_all(client, world, data, tablet=world.public_a)
+    assert response.status_code == 409 and response.json()["where"] == "manifest.scan.id"
+
+
+def test_checksum_mismatch_names_the_sha256_and_keeps_nothing(
+    client, world, dispatcher, tmp_path, app
+):
+    data = bundle_bytes(tmp_path)
+    upload_id = create(client, world, data).json()["id"]
+    corrupted = bytearray(data)
+    corrupted[100] ^= 0xFF
+    assert put(client, world, upload_id, 0, bytes(corrupted)).status_code == 200
+    response = complete(client, world, upload_id, sha(data))
+    assert response.status_code == 422
+    body = response.json()
+    assert body["where"] == "sha256"
+    assert sha(bytes(corrupted)) in body["detail"] and sha(data) in body["detail"]
+    assert list((app.state.settings.data_dir / "uploads").iterdir()) == []
+    assert LocalStorage(app.state.settings.resolved_storage_dir).list() == []
+    assert dispatcher.sent == []
+    state = client.get(f"{API}/uploads/{upload_id}", headers=world.headers("staff_own")).json()
+    assert state["state"] == "failed"
+    assert put(client, world, upload_id, 0, data).status_code == 409
+
+
+def test_invalid_bundle_lists_every_problem_and_keeps_nothing(client, world, dispatcher, app):
+    data = invalid_bundle_bytes()
+    upload_id = create(client, world, data).json()["id"]
+    assert put(client, world, upload_id, 0, data).status_code == 200
+    response = complete(client, world, upload_id, sha(data))
+    assert response.status_code == 422
+    problems = response.json()["problems"]
+    wheres = " ".join(p["where"] for p in problems)
+    assert (
+        "scan.face" in wheres
+        and "pixel_size_um" in wheres
+        and "missing.png" in json.dumps(problems)
+    )
+    assert all(set(p) == {"where", "message"} for p in problems)
+    assert str(app.state.settings.data_dir) not in json.dumps(response.json())  # no server paths
+    assert list((app.state.settings.data_dir / "uploads").iterdir()) == []
+    assert LocalStorage(app.state.settings.resolved_storage_dir).list() == []
+    scans = client.get(f"{API}/tablets/{world.private_a}/scans", headers=world.headers("admin"))
+    assert scans.json() == [] and dispatcher.sent == []
+
+
+def test_not_a_zip_is_a_problem_naming_the_file(client, world, dispatcher):
+    data = b"this is not a zip file at all"
+    upload_id = create(client, world, data, filename="rig.zip").json()["id"]
+    put(client, world, upload_id, 0, data)
+    response = complete(client, world, upload_id, sha(data))
+    assert response.status_code == 422
+    assert "rig.zip" in response.json()["problems"][0]["message"]
+
+
+def test_upload_survives_a_server_restart(client, world, dispatcher, tmp_path, settings):
+    data = bundle_bytes(tmp_path)
+    upload_id = create(client, world, data).json()["id"]
+    half = len(data) // 2
+    assert put(client, world, upload_id, 0, data[:half]).status_code == 200
+
+    restarted = create_app(settings)  # same database and data dir, fresh process state
+    restarted.state.dispatcher = RecordingDispatcher()
+    with TestClient(restarted) as again:
+        state = again.get(f"{API}/uploads/{upload_id}", headers=world.headers("staff_own"))
+        assert state.json()["missing"] == [[half, len(data)]]
+        assert put(again, world, upload_id, half, data[half:]).status_code == 200
+        assert complete(again, world, upload_id, sha(data)).status_code == 201
+    restarted.state.engine.dispose()
+
+
+def test_chunk_past_the_end_is_refused(client, world):
+    upload_id = create(client, world, b"x" * 100).json()["id"]
+    response = put(client, world, upload_id, 90, b"y" * 20)
+    assert response.status_code == 422 and response.json()["where"] == "offset"
+    state = client.get(f"{API}/uploads/{upload_id}", headers=world.headers("staff_own")).json()
+    assert state["received_bytes"] == 0
+    assert put(client, world, upload_id, -1, b"y").status_code == 422
+
+
+def test_size_limit_and_filename(client, world, app, settings):
+    big = settings.upload_max_bytes + 1
+    response = client.post(
+        f"{API}/uploads",
+        json={"tablet_id": world.private_a, "filename": "a.zip", "size_bytes": big},
+        headers=world.headers("staff_own"),
+    )
+    assert response.status_code == 413 and response.json()["where"] == "size_bytes"
+    for filename in ["a.tar", "../a.zip", ""]:
+        response = client.post(
+            f"{API}/uploads",
+            json={"tablet_id": world.private_a, "filename": filename, "size_bytes": 10},
+            headers=world.headers("staff_own"),
+        )
+        assert response.status_code == 422, filename
+
+
+def test_abandon_an_upload(client, world, app):
+    upload_id = create(client, world, b"z" * 50).json()["id"]
+    headers = world.headers("staff_own")
+    assert client.delete(f"{API}/uploads/{upload_id}", headers=headers).status_code == 204
+    assert client.get(f"{API}/uploads/{upload_id}", headers=headers).status_code == 404
+    assert list((app.state.settings.data_dir / "uploads").iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    ("role", "tablet", "status"),
+    [
+        ("anonymous", "private_a", 401),
+        ("reader", "public_a", 403),
+        ("staff_other", "public_a", 403),
+        ("staff_other", "private_a", 404),  # a private record of others is not revealed
+        ("staff_own", "private_a", 201),
+        ("admin", "private_b", 201),
+        ("admin", 999_999, 404),
+    ],
+)
+def test_who_may_upload(client, world, role, tablet, status):
+    tablet_id = getattr(world, tablet) if isinstance(tablet, str) else tablet
+    response = create(client, world, b"data", role=role, tablet=tablet_id)
+    assert response.status_code == status, response.text
+
+
+def test_others_cannot_touch_an_upload(client, world):
+    upload_id = create(client, world, b"q" * 10).json()["id"]
+    assert put(client, world, upload_id, 0, b"q" * 10, role="staff_other").status_code == 404
+    assert put(client, world, upload_id, 0, b"q" * 10, role="reader").status_code == 404
+    assert complete(client, world, upload_id, sha(b"q" * 10), role="anonymous").status_code == 401
+    assert put(client, world, upload_id, 0, b"q" * 10, role="admin").status_code == 200
+    missing = "00000000-0000-4000-8000-000000000000"
+    assert put(client, world, missing, 0, b"q").status_code == 404
