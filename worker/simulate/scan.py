@@ -1,0 +1,282 @@
+"""Simulate whole scans: render every frame, write the bundle and the ground truth beside it.
+
+Layout (docs/architecture.md, "Simulator"): ``OUT/bundle/`` (or ``OUT/bundle.zip``) and
+``OUT/gt/{height,normals,albedo,mask}.npy, wedges.json``; for ``face="all"`` one such pair
+per face under ``OUT/<face>/`` plus ``OUT/poses.json`` and ``OUT/tablet.ply``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from worker.bundle import write_bundle
+from worker.simulate.acquisition import PRESETS, frame_file, manifest, pixel_size_for, plan_frames
+from worker.simulate.noise import NoiseModel, noise_model
+from worker.simulate.rig import Rig, render_frame
+from worker.simulate.tablet import FACE_POSES, FACES, Tablet, make_tablet
+from worker.simulate.view import View, render_view
+
+__all__ = ["SimulationResult", "parse_size", "simulate_scan", "wedge_records"]
+
+
+@dataclass(frozen=True)
+class SimulationResult:
+    """Where things were written; ``views`` maps face → View (kept for callers' checks)."""
+
+    out_dir: Path
+    bundles: dict[str, Path]
+    gt_dirs: dict[str, Path]
+    views: dict[str, View]
+    n_frames: int
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'512x384' → (512, 384); ValueError naming the argument otherwise."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"size: expected WIDTHxHEIGHT such as 512x384, got {text!r}") from None
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise ValueError(f"size: width and height must be 16..8192, got {text!r}")
+    return w, h
+
+
+def wedge_records(tablet: Tablet, view: View) -> list[dict]:
+    """The wedges that face the camera and lie in the frame, in view coordinates.
+
+    Each: face, centre/bottom/rim as {row, col, height_um}, direction_deg in the image
+    (0° = +x/right, 90° = +y/down), width_um, depth_um (apex below the tangent plane),
+    depth_view_um = mean rim height - bottom height in this view.
+    """
+    s = view.pixel_size_um
+
+    def to_view(p: np.ndarray) -> dict:
+        q = view.pose @ p + view.translation_um
+        return {"row": float(q[1] / s), "col": float(q[0] / s), "height_um": float(-q[2])}
+
+    out = []
+    for i, w in enumerate(tablet.wedges):
+        if (view.pose @ w.normal)[2] > -0.5:
+            continue
+        bottom = to_view(w.apex_um)
+        rim = [to_view(p) for p in w.rim_um]
+        points = [bottom, *rim]
+        if not all(
+            0 <= p["row"] <= view.height - 1 and 0 <= p["col"] <= view.width - 1 for p in points
+        ):
+            continue
+        d = view.pose @ w.direction
+        out.append(
+            {
+                "id": i,
+                "face": w.face,
+                "centre": to_view(w.centre_um),
+                "direction_deg": float(np.degrees(np.arctan2(d[1], d[0]))),
+                "width_um": w.width_um,
+                "depth_um": w.depth_um,
+                "bottom": bottom,
+                "rim": rim,
+                "depth_view_um": float(
+                    np.mean([p["height_um"] for p in rim]) - bottom["height_um"]
+                ),
+                "has_tail": w.tail_end_um is not None,
+            }
+        )
+    return out
+
+
+def _fsync_write(path: Path, data: bytes) -> None:
+    with open(path, "xb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+def _write_npy(path: Path, array: np.ndarray) -> None:
+    with open(path, "xb") as fh:
+        np.save(fh, array)
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+def _write_dir_atomic(target: Path, fill: Callable[[Path], None]) -> None:
+    tmp = target.with_name(f".{target.name}.tmp-{uuid.uuid4().hex}")
+    tmp.mkdir(parents=True)
+    try:
+        fill(tmp)
+        os.rename(tmp, target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _write_gt(gt_dir: Path, view: View, tablet: Tablet) -> None:
+    gt = view.ground_truth()
+
+    def fill(tmp: Path) -> None:
+        for name in ("height", "normals", "albedo", "mask"):
+            _write_npy(tmp / f"{name}.npy", gt[name])
+        text = json.dumps({"wedges": wedge_records(tablet, view)}, indent=1)
+        _fsync_write(tmp / "wedges.json", text.encode())
+
+    _write_dir_atomic(gt_dir, fill)
+
+
+def _check_fringe_range(view: View, preset_polar_deg: float, coarsest_um: float) -> None:
+    h = view.height_ss_um[view.tablet_ss]
+    need = 2 * np.tan(np.radians(preset_polar_deg)) * float(np.max(np.abs(h)))
+    if coarsest_um <= need:
+        raise ValueError(
+            f"coarsest fringe period {coarsest_um:.0f} µm does not exceed 2·tanθ·max|h| = {need:.0f} µm"
+        )
+
+
+def _simulate_face(
+    tablet: Tablet,
+    face: str,
+    face_dir: Path,
+    *,
+    seed: int,
+    size: tuple[int, int],
+    preset_name: str,
+    noise: NoiseModel,
+    as_zip: bool,
+    progress: bool,
+) -> tuple[Path, Path, View, int]:
+    from tqdm import tqdm
+
+    preset = PRESETS[preset_name]
+    width, height = size
+    pixel = pixel_size_for(width, height)
+    pose = FACE_POSES[face]
+    view = render_view(
+        tablet,
+        pose,
+        width=width,
+        height=height,
+        pixel_size_um=pixel,
+        supersample=preset.supersample,
+    )
+    rig = Rig(seed, width * pixel, height * pixel, irradiance_variation=noise.irradiance_variation)
+    frames = plan_frames(
+        preset,
+        width=width,
+        height=height,
+        pixel_size_um=pixel,
+        noise=noise,
+        rng=np.random.default_rng([seed, 0xE0]),
+    )
+    coarsest = min(  # the coarsest period of each azimuth must do; check the smallest of them
+        max(f.period_um for f in frames if f.kind == "fringe" and f.azimuth_deg == az)
+        for az in {f.azimuth_deg for f in frames if f.kind == "fringe"}
+    )
+    _check_fringe_range(view, preset.polar_deg, coarsest)
+    files = [frame_file(f, i) for i, f in enumerate(frames)]
+    face_id = FACES.index(face)
+    images = {}
+    for i, (frame, file) in enumerate(
+        tqdm(
+            list(zip(frames, files, strict=True)),
+            desc=f"{face} frames",
+            unit="frame",
+            file=sys.stderr,
+            disable=not progress,
+        )
+    ):
+        rng = np.random.default_rng([seed, face_id, i])
+        images[file] = render_frame(view, frame, noise, rng, rig=rig)
+    doc = manifest(
+        frames,
+        files,
+        face=face,
+        pose=pose,
+        seed=seed,
+        width=width,
+        height=height,
+        pixel_size_um=pixel,
+        noise=noise,
+        polar_deg=preset.polar_deg,
+        reflectance=rig.reflectance_reference,
+    )
+    face_dir.mkdir(parents=True, exist_ok=True)
+    bundle = face_dir / ("bundle.zip" if as_zip else "bundle")
+    write_bundle(bundle, doc, images, as_zip=as_zip)
+    gt_dir = face_dir / "gt"
+    _write_gt(gt_dir, view, tablet)
+    return bundle, gt_dir, view, len(frames)
+
+
+def simulate_scan(
+    out_dir: str | os.PathLike,
+    *,
+    seed: int = 0,
+    size: tuple[int, int] | None = None,
+    face: str = "obverse",
+    preset: str = "quick",
+    noise: str | NoiseModel = "default",
+    as_zip: bool = False,
+    progress: bool = False,
+) -> SimulationResult:
+    """Simulate the scan of one face (or ``"all"`` six) of the synthetic tablet of ``seed``.
+
+    Refuses (FileExistsError) to overwrite an existing bundle or gt folder.
+    """
+    if preset not in PRESETS:
+        raise ValueError(f"preset: unknown {preset!r}; choose from {sorted(PRESETS)}")
+    faces = FACES if face == "all" else (face,)
+    if face != "all" and face not in FACE_POSES:
+        raise ValueError(f"face: unknown {face!r}; choose from {[*FACES, 'all']}")
+    model = noise if isinstance(noise, NoiseModel) else noise_model(noise)
+    size = size or (PRESETS[preset].width, PRESETS[preset].height)
+    out = Path(out_dir)
+    dirs = {f: (out / f if face == "all" else out) for f in faces}
+    for d in dirs.values():
+        for name in ("bundle", "bundle.zip", "gt"):
+            if (d / name).exists():
+                raise FileExistsError(f"out: {d / name} exists; choose an empty --out")
+    tablet = make_tablet(seed)
+    bundles, gts, views, n = {}, {}, {}, 0
+    for f in faces:
+        bundles[f], gts[f], views[f], k = _simulate_face(
+            tablet,
+            f,
+            dirs[f],
+            seed=seed,
+            size=size,
+            preset_name=preset,
+            noise=model,
+            as_zip=as_zip,
+            progress=progress,
+        )
+        n += k
+    if face == "all":
+        from worker.simulate.mesh import tablet_mesh
+
+        poses = {
+            f: {
+                "rotation": views[f].pose.tolist(),
+                "translation_um": views[f].translation_um.tolist(),
+            }
+            for f in faces
+        }
+        doc = {
+            "convention": "X_view = rotation @ X_tablet + translation_um; view (x, y, z) = "
+            "(c·s, r·s, -h) in µm; tablet.ply is in mm in the tablet frame",
+            "poses": poses,
+        }
+        tmp = out / f".poses.json.tmp-{uuid.uuid4().hex}"
+        _fsync_write(tmp, json.dumps(doc, indent=1).encode())
+        os.replace(tmp, out / "poses.json")
+        tmp = out / f".tablet.ply.tmp-{uuid.uuid4().hex}"
+        _fsync_write(tmp, tablet_mesh(tablet).export(file_type="ply"))
+        os.replace(tmp, out / "tablet.ply")
+    return SimulationResult(out, bundles, gts, views, n)

@@ -1,0 +1,258 @@
+"""A seeded synthetic cuneiform tablet: body, inscription, chips and clay colour.
+
+The tablet frame (µm): x right, y down (toward the bottom edge), z through the tablet;
+the obverse faces -z. ``FACE_POSES[face]`` is the rotation from the tablet frame into
+the view frame of a scan of that face (the face's outward normal maps to -z, toward
+the camera).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from worker.simulate.carvings import Polyhedron, Wedge, chip, groove_segment, wedge
+from worker.simulate.pillow import Pillow, make_pillow
+from worker.simulate.raycast import Cavities, cast_rays
+
+__all__ = ["FACE_POSES", "FACES", "Albedo", "Tablet", "make_tablet", "surface_points"]
+
+FACE_POSES: dict[str, np.ndarray] = {
+    "obverse": np.eye(3),
+    "reverse": np.diag([-1.0, 1.0, -1.0]),
+    "top": np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]),
+    "bottom": np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]),
+    "left": np.array([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]]),
+    "right": np.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]]),
+}
+FACES = tuple(FACE_POSES)
+
+
+@dataclass(frozen=True)
+class Albedo:
+    """Solid texture of the clay: linear RGB reflectance at any tablet-frame point.
+
+    rho(x) = base · (1 + Σ brightness waves) · (1 + hue waves · (1, 0, -1)) · stains
+    """
+
+    base_rgb: np.ndarray  # (3,)
+    waves: np.ndarray  # (K, 3) rad/µm
+    wave_amp: np.ndarray  # (K,)
+    wave_phase: np.ndarray  # (K,)
+    hue_waves: np.ndarray  # (J, 3)
+    hue_amp: np.ndarray  # (J,)
+    hue_phase: np.ndarray  # (J,)
+    stain_centres_um: np.ndarray  # (M, 3)
+    stain_radii_um: np.ndarray  # (M,)
+    stain_rgb: np.ndarray  # (M, 3) multiplicative tint at the stain centre
+
+    def __call__(self, points_um: np.ndarray) -> np.ndarray:
+        """Reflectance (N, 3) in [0.02, 0.95] at points (N, 3) µm."""
+        shade = np.ones(len(points_um))
+        for k, a, p in zip(self.waves, self.wave_amp, self.wave_phase, strict=True):
+            shade += a * np.sin(points_um @ k + p)
+        hue = np.zeros(len(points_um))
+        for k, a, p in zip(self.hue_waves, self.hue_amp, self.hue_phase, strict=True):
+            hue += a * np.sin(points_um @ k + p)
+        rgb = self.base_rgb * shade[:, None] * (1 + hue[:, None] * np.array([1.0, 0.0, -1.0]))
+        for c, r, tint in zip(
+            self.stain_centres_um, self.stain_radii_um, self.stain_rgb, strict=True
+        ):
+            w = np.exp(-np.sum((points_um - c) ** 2, axis=1) / (2 * r * r))
+            rgb *= 1 + w[:, None] * (tint - 1)
+        return np.clip(rgb, 0.02, 0.95)
+
+
+@dataclass(frozen=True)
+class Tablet:
+    """Body + cavities + inscription + colour; everything in the tablet frame, µm."""
+
+    pillow: Pillow
+    cavities: Cavities
+    wedges: tuple[Wedge, ...]
+    albedo: Albedo
+
+
+def surface_points(
+    pillow: Pillow, origins_um: np.ndarray, dirs: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points, outward normals and hit flags where rays meet the uncarved rough body."""
+    hits = cast_rays(pillow, Cavities.empty(), origins_um, dirs, lambda i: np.zeros(0, int))
+    d = dirs if dirs.ndim == 2 else dirs[None, :]
+    points = origins_um + np.where(hits.hit, hits.t_um, 0)[:, None] * d
+    return points, hits.normals, hits.hit
+
+
+def _face_point(pillow: Pillow, face: str, u_um: float, v_um: float):
+    rot = FACE_POSES[face]
+    right, down, outward = rot[0], rot[1], -rot[2]
+    origin = u_um * right + v_um * down + outward * 2 * pillow.bounding_radius_um
+    p, n, hit = surface_points(pillow, origin[None], -outward)
+    if not hit[0]:
+        raise ValueError(f"no surface at {face} ({u_um}, {v_um})")
+    return p[0], n[0], right, down
+
+
+def _sign_wedges(
+    pillow: Pillow, face: str, rng: np.random.Generator, u0: float, v0: float, row_um: float
+) -> list[Wedge]:
+    """One sign: 1-3 wedges in a box starting at (u0, v0 = row top)."""
+    out = []
+    for _ in range(int(rng.integers(1, 4))):
+        kind = rng.choice(["horizontal", "vertical", "winkelhaken"], p=[0.45, 0.35, 0.2])
+        w = rng.uniform(1.2, 2.6) if kind != "winkelhaken" else rng.uniform(1.0, 1.8)
+        w = min(w * 1000.0, 0.5 * row_um)
+        depth = float(np.clip(w * rng.uniform(0.14, 0.24), 100.0, 600.0))
+        if kind == "horizontal":
+            du, dv, tail = 1.0, 0.0, w * rng.uniform(0.6, 1.6)
+            u, v = u0 + 0.5 * w + rng.uniform(0, 600), v0 + rng.uniform(0.35, 0.65) * row_um
+        elif kind == "vertical":
+            du, dv, tail = 0.0, 1.0, max(row_um - 1.3 * w, 0.2 * w)
+            u, v = u0 + 0.5 * w + rng.uniform(0, 1600), v0 + 0.5 * w + 150.0
+        else:
+            du, dv, tail = 1.0, 1.0, 0.0
+            u, v = u0 + 0.5 * w + rng.uniform(0, 1600), v0 + rng.uniform(0.3, 0.7) * row_um
+        s, n, right, down = _face_point(pillow, face, u, v)
+        out.append(
+            wedge(face, s, n, du * right + dv * down, width_um=w, depth_um=depth, tail_um=tail)
+        )
+    return out
+
+
+def _inscribe_face(pillow: Pillow, face: str, rng: np.random.Generator):
+    """Rulings and rows of signs on a broad face; returns (wedges, ruling polyhedra)."""
+    a, b, _ = pillow.half_size_um
+    r = pillow.edge_radius_um
+    u_max, v_max = a - 0.45 * r, b - 0.45 * r
+    pitch = rng.uniform(4200.0, 5000.0)
+    rulings = np.arange(-v_max + pitch, v_max - 0.5 * pitch, pitch)
+    rows = np.concatenate([[-v_max], rulings])
+    wedges: list[Wedge] = []
+    pieces: list[Polyhedron] = []
+    for v in rulings:
+        depth = rng.uniform(50.0, 110.0)
+        us = np.linspace(-u_max, u_max, int(2 * u_max // 3000) + 2)
+        ends = []
+        for u in us:
+            s, n, _, _ = _face_point(pillow, face, u, v)
+            ends.append((s - depth * n, n))
+        for (p0, n0), (p1, n1) in zip(ends[:-1], ends[1:], strict=True):
+            axis = (p1 - p0) / np.linalg.norm(p1 - p0)
+            pieces.append(
+                groove_segment(
+                    p0 - 200 * axis,
+                    p1 + 200 * axis,
+                    n0 + n1,
+                    half_angle_deg=65.0,
+                    top_um=(p0 + p1) / 2 + depth * (n0 + n1) / 2,
+                )
+            )
+    for v_top in rows:
+        row_um = min(pitch, v_max - v_top) - 300.0
+        if row_um < 1500:
+            continue
+        u = -u_max + rng.uniform(0, 800)
+        while u < u_max - 2500:
+            if rng.uniform() < 0.9:
+                wedges += _sign_wedges(pillow, face, rng, u, v_top + 250.0, row_um)
+            u += rng.uniform(2800.0, 4200.0)
+    return wedges, pieces
+
+
+def _inscribe_edge(pillow: Pillow, face: str, rng: np.random.Generator) -> list[Wedge]:
+    """A short line of small wedges along the middle of an edge."""
+    a, b, _ = pillow.half_size_um
+    r = pillow.edge_radius_um
+    along_u = face in ("top", "bottom")
+    half = (a if along_u else b) - 0.8 * r
+    out = []
+    for t in np.arange(-half, half, rng.uniform(2500, 3500)):
+        if rng.uniform() < 0.35:
+            continue
+        u, v = (t, 0.0) if along_u else (0.0, t)
+        s, n, right, down = _face_point(pillow, face, u, v)
+        w = rng.uniform(900.0, 1500.0)
+        direction = right if along_u else down
+        out.append(
+            wedge(
+                face,
+                s,
+                n,
+                direction,
+                width_um=w,
+                depth_um=w * rng.uniform(0.12, 0.2),
+                tail_um=w * rng.uniform(0.0, 1.2),
+            )
+        )
+    return out
+
+
+def _chips(pillow: Pillow, rng: np.random.Generator, count: int) -> list[Polyhedron]:
+    out = []
+    for _ in range(count):
+        direction = rng.normal(size=3) * np.array([1.0, 1.0, 0.5])
+        direction /= np.linalg.norm(direction)
+        origin = direction * 2 * pillow.bounding_radius_um
+        p, n, hit = surface_points(pillow, origin[None], -direction)
+        if hit[0]:
+            out.append(
+                chip(
+                    p[0], n[0], rng, size_um=rng.uniform(2000, 4000), depth_um=rng.uniform(300, 800)
+                )
+            )
+    return out
+
+
+def _make_albedo(rng: np.random.Generator, pillow: Pillow) -> Albedo:
+    def waves(n: int, lo: float, hi: float):
+        lam = np.exp(rng.uniform(np.log(lo), np.log(hi), n))
+        dirs = rng.normal(size=(n, 3))
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        return dirs * (2 * np.pi / lam)[:, None], rng.uniform(0, 2 * np.pi, n)
+
+    k_waves, p_waves = waves(10, 400.0, 15_000.0)
+    k_hue, p_hue = waves(4, 3000.0, 20_000.0)
+    n_stains = int(rng.integers(3, 7))
+    stain_dirs = rng.normal(size=(n_stains, 3))
+    stain_dirs /= np.linalg.norm(stain_dirs, axis=1, keepdims=True)
+    centres = stain_dirs * pillow.half_size_um * 0.9
+    dark = rng.uniform(0.5, 0.85, (n_stains, 1))
+    tint = dark * np.array([1.0, 0.95, 0.85]) ** rng.uniform(0.5, 2.0, (n_stains, 1))
+    return Albedo(
+        base_rgb=np.array([0.46, 0.34, 0.23]) * rng.uniform(0.85, 1.1, 3),
+        waves=k_waves,
+        wave_amp=rng.uniform(0.01, 0.04, 10),
+        wave_phase=p_waves,
+        hue_waves=k_hue,
+        hue_amp=rng.uniform(0.02, 0.06, 4),
+        hue_phase=p_hue,
+        stain_centres_um=centres,
+        stain_radii_um=rng.uniform(1000.0, 4000.0, n_stains),
+        stain_rgb=tint,
+    )
+
+
+def make_tablet(seed: int) -> Tablet:
+    """The synthetic tablet of ``seed``: the same seed always gives the same tablet."""
+    rng = np.random.default_rng([seed, 0x7AB1E7])
+    pillow = make_pillow(rng)
+    wedges: list[Wedge] = []
+    pieces: list[Polyhedron] = []
+    for face in ("obverse", "reverse"):
+        w, p = _inscribe_face(pillow, face, rng)
+        wedges += w
+        pieces += p
+    for face in ("top", "bottom", "left", "right"):
+        wedges += _inscribe_edge(pillow, face, rng)
+    pieces += _chips(pillow, rng, int(rng.integers(2, 5)))
+    pieces = [pc for wd in wedges for pc in wd.pieces] + pieces
+    spheres = [pc.bounding_sphere() for pc in pieces]
+    cavities = Cavities.from_polyhedra(
+        [(pc.normals, pc.offsets) for pc in pieces],
+        np.array([c for c, _ in spheres]),
+        np.array([r for _, r in spheres]),
+    )
+    return Tablet(
+        pillow=pillow, cavities=cavities, wedges=tuple(wedges), albedo=_make_albedo(rng, pillow)
+    )
