@@ -9,11 +9,11 @@ the spool consistent and the reason recorded in ``state.json``.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 
-from rig_agent.devices.base import Camera, DeviceError, Projector, Stage, capture_average
+from rig_agent.devices.base import Camera, DeviceError, capture_average
+from rig_agent.devices.factory import Devices
 from rig_agent.spool import SpoolScan
 
 Progress = Callable[[int, int], None]
@@ -21,17 +21,6 @@ Progress = Callable[[int, int], None]
 
 class ScanInterrupted(RuntimeError):
     """Capture stopped on a device problem; the message says what and how to continue."""
-
-
-@dataclass
-class Devices:
-    stage: Stage
-    camera: Camera
-    projector: Projector
-
-    def close(self) -> None:
-        for device in (self.projector, self.camera, self.stage):
-            device.close()
 
 
 def capture(

@@ -21,6 +21,7 @@ def albedo(shift_px: int = 0) -> np.ndarray:
     rng = np.random.default_rng(7)
     texture = gaussian_filter(rng.normal(size=(H, W + 8)), 2.0)
     texture = 0.3 + 0.6 * (texture - texture.min()) / np.ptp(texture)
+    texture[:, :12] = texture[:, -12:] = 0.02  # a tablet on black velvet: it has an outline
     return texture[:, 4 + shift_px : 4 + shift_px + W]
 
 
@@ -62,8 +63,8 @@ def test_a_good_scan_passes(good):
     # B/A by at most ~σ²/(B·A) ≈ 1e-3 — far below the tolerance of 0.03.
     mods = [v for k, v in report.figures.items() if k.startswith("modulation")]
     assert mods and all(abs(m - 0.7) < 0.03 for m in mods)
-    # Check frame vs first: √2·σ/mean ≈ 1.4·8/1440 ≈ 0.008 relative RMS from noise alone.
-    assert report.figures["moved_relative_rms"] < 0.02
+    # Check frame vs first on 4×4 tiles: √2·σ/(4·mean) ≈ 1.4·8/(4·1440) ≈ 0.2 % from noise.
+    assert report.figures["moved_relative_rms"] < 0.01
     assert "passed" in report.to_text()
 
 
@@ -100,8 +101,9 @@ def test_faint_fringes_are_reported_per_set(good):
 
 
 def test_a_tablet_moved_between_phase_steps(good):
-    # A 3-pixel shift of the texture in two of the four steps gives a drift of ≈ 4.4 %
-    # against a noise floor of 2σ/(2·mean A) ≈ 1.1 % (σ = 8, A ≈ 720): above the 3 % limit.
+    # Noise alone: 2σ/(b·2·mean A) ≈ 2·8/(4·2·720) ≈ 0.3 % on 4×4 tiles. A 3-pixel shift of
+    # the tablet in two of the four steps moves its outline: 4–8 % on the coarse periods
+    # (on fine periods the fringe weights of the residual average out within a tile).
     fringe = [s for s in SHOTS if s.kind == "fringe" and s.azimuth_deg == 0]
     for s in fringe:
         if s.phase_deg in (180, 270):
