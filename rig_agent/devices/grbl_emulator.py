@@ -54,7 +54,8 @@ class GrblEmulator:
     def __init__(self, config: EmulatorConfig | None = None) -> None:
         self.config = config or EmulatorConfig()
         self.received: list[str] = []  # every line received, normalised as GRBL sees it
-        self.hard_limit_on_move: int | None = None  # trip ALARM:1 half way through move N
+        # trip ALARM:1 half way through move N (counted since the last reset), once
+        self.hard_limit_on_move: int | None = None
         self._lock = threading.Lock()
         self._master = -1
         self._slave = -1
@@ -186,6 +187,7 @@ class GrblEmulator:
             move.started = now
         fraction = 1.0 if move.duration_s <= 0 else min(1.0, (now - move.started) / move.duration_s)
         if self.hard_limit_on_move == move.number and fraction >= 0.5:
+            self.hard_limit_on_move = None  # one switch hit, not one per power cycle
             fraction = 0.5
             self.position = _lerp(move.start, move.target, fraction)
             self._alarm(1)
