@@ -100,9 +100,25 @@ def _load(session: Session, job_id: int) -> Job:
     return job
 
 
-def create(session: Session, *, scan: Scan, kind: JobKind = JobKind.reconstruct) -> Job:
-    """A queued job for ``scan`` (flushed, not committed: it joins the scan's transaction)."""
-    job = Job(scan_id=scan.id, tablet_id=scan.tablet_id, kind=kind, state=JobState.queued)
+def create(
+    session: Session,
+    *,
+    scan: Scan | None = None,
+    tablet_id: int | None = None,
+    kind: JobKind = JobKind.reconstruct,
+) -> Job:
+    """A queued job for ``scan``, or for a whole tablet (``tablet_id``, e.g. registration).
+
+    Flushed, not committed: it joins the caller's transaction (the new scan's).
+    """
+    if (scan is None) == (tablet_id is None):
+        raise ValueError("give exactly one of scan and tablet_id")
+    job = Job(
+        scan_id=scan.id if scan is not None else None,
+        tablet_id=scan.tablet_id if scan is not None else tablet_id,
+        kind=kind,
+        state=JobState.queued,
+    )
     session.add(job)
     session.flush()
     return job
@@ -204,14 +220,17 @@ def mark_enqueued(session: Session, *, job_id: int) -> Job:
     return job
 
 
-def next_version(session: Session, *, tablet_id: int, face: str) -> int:
-    """1 + the highest model version of this tablet's ``face`` (a re-scan adds a version)."""
-    highest = session.scalar(
-        select(func.max(Model.version))
-        .join(Scan, Model.scan_id == Scan.id)
-        .where(Model.tablet_id == tablet_id, Scan.face == face)
-    )
-    return (highest or 0) + 1
+def next_version(session: Session, *, tablet_id: int, face: str | None) -> int:
+    """1 + the highest model version of this tablet's ``face`` (a re-scan adds a version).
+
+    ``face=None`` counts the whole-tablet models (made from several scans, ``scan_id`` NULL).
+    """
+    query = select(func.max(Model.version)).where(Model.tablet_id == tablet_id)
+    if face is None:
+        query = query.where(Model.scan_id.is_(None))
+    else:
+        query = query.join(Scan, Model.scan_id == Scan.id).where(Scan.face == face)
+    return (session.scalar(query) or 0) + 1
 
 
 def mark_succeeded(
@@ -239,10 +258,11 @@ def mark_succeeded(
         raise ValueError(f"model_dir {str(model_dir)!r} holds no model.glb")
     if report is None:
         report = _read_report(model_dir)
-    scan = session.get(Scan, job.scan_id)
-    if scan is None:
+    scan = session.get(Scan, job.scan_id) if job.scan_id is not None else None
+    if job.scan_id is not None and scan is None:
         raise LookupError(f"job {job.id}: its scan is gone")
-    version = next_version(session, tablet_id=job.tablet_id, face=scan.face)
+    face = scan.face if scan is not None else None
+    version = next_version(session, tablet_id=job.tablet_id, face=face)
     # A fresh prefix per version: nothing ever overwrites a stored version.
     prefix = f"models/{job.tablet_id}/{uuid.uuid4().hex}"
     stats = storage.put_tree(prefix, model_dir)
@@ -251,7 +271,7 @@ def mark_succeeded(
             s.key[len(prefix) + 1 :]: {"size_bytes": s.size_bytes, "sha256": s.etag} for s in stats
         }
         model = Model(
-            scan_id=scan.id,
+            scan_id=job.scan_id,
             tablet_id=job.tablet_id,
             job_id=job.id,
             version=version,
