@@ -33,14 +33,11 @@ class Polyhedron:
 
     def bounding_sphere(self) -> tuple[np.ndarray, float]:
         """Centre (3,) and radius of a sphere around all vertices of the (bounded) polyhedron."""
-        verts = []
-        for i, j, k in itertools.combinations(range(len(self.offsets)), 3):
-            a = self.normals[[i, j, k]]
-            if abs(np.linalg.det(a)) < 1e-9:
-                continue
-            v = np.linalg.solve(a, self.offsets[[i, j, k]])
-            if np.all(self.normals @ v <= self.offsets + 1e-6):
-                verts.append(v)
+        triples = np.array(list(itertools.combinations(range(len(self.offsets)), 3)))
+        a = self.normals[triples]  # (T, 3, 3)
+        ok = np.abs(np.linalg.det(a)) > 1e-9
+        v = np.linalg.solve(a[ok], self.offsets[triples[ok]][..., None])[..., 0]
+        verts = v[np.all(v @ self.normals.T <= self.offsets + 1e-6, axis=1)]
         if len(verts) < 4:
             raise ValueError("polyhedron is not bounded")
         verts = np.array(verts)

@@ -55,9 +55,10 @@ def cast_shadow(
         if shift:
             ahead = np.concatenate([ahead[shift:], np.full(shift, -np.inf)])
         horizon[r] = ahead - drop
-    # Tolerance: the path is off by up to one sample across the ray; on slopes up to 1
-    # that is one step of height, so lit slopes stay lit.
-    visible = h >= horizon - step_um
+    # Tolerance: off the axes the path is up to one sample off across the ray; on slopes up
+    # to 1 that is one step of height, so lit slopes stay lit. On the axes it is exact.
+    tol_um = step_um * min(1.0, 4.0 * lateral) + 1e-3
+    visible = h >= horizon - tol_um
     if transpose:
         visible = visible.T
     if flip_x:

@@ -84,20 +84,20 @@ def surface_points(
     return points, hits.normals, hits.hit
 
 
-def _face_point(pillow: Pillow, face: str, u_um: float, v_um: float):
+def _face_points(pillow: Pillow, face: str, uv_um: np.ndarray):
+    """Surface points (N, 3), outward normals (N, 3) at face coordinates uv (N, 2), one cast."""
     rot = FACE_POSES[face]
     right, down, outward = rot[0], rot[1], -rot[2]
-    origin = u_um * right + v_um * down + outward * 2 * pillow.bounding_radius_um
-    p, n, hit = surface_points(pillow, origin[None], -outward)
-    if not hit[0]:
-        raise ValueError(f"no surface at {face} ({u_um}, {v_um})")
-    return p[0], n[0], right, down
+    uv_um = np.asarray(uv_um, float).reshape(-1, 2)
+    origins = uv_um[:, :1] * right + uv_um[:, 1:] * down + outward * 2 * pillow.bounding_radius_um
+    p, n, hit = surface_points(pillow, origins, -outward)
+    if not hit.all():
+        raise ValueError(f"no surface at {face} {uv_um[~hit][0]}")
+    return p, n
 
 
-def _sign_wedges(
-    pillow: Pillow, face: str, rng: np.random.Generator, u0: float, v0: float, row_um: float
-) -> list[Wedge]:
-    """One sign: 1-3 wedges in a box starting at (u0, v0 = row top)."""
+def _sign_requests(rng: np.random.Generator, u0: float, v0: float, row_um: float) -> list[tuple]:
+    """One sign: 1-3 wedges in a box from (u0, v0 = row top): (u, v, du, dv, w, depth, tail)."""
     out = []
     for _ in range(int(rng.integers(1, 4))):
         kind = rng.choice(["horizontal", "vertical", "winkelhaken"], p=[0.45, 0.35, 0.2])
@@ -113,11 +113,20 @@ def _sign_wedges(
         else:
             du, dv, tail = 1.0, 1.0, 0.0
             u, v = u0 + 0.5 * w + rng.uniform(0, 1600), v0 + rng.uniform(0.3, 0.7) * row_um
-        s, n, right, down = _face_point(pillow, face, u, v)
-        out.append(
-            wedge(face, s, n, du * right + dv * down, width_um=w, depth_um=depth, tail_um=tail)
-        )
+        out.append((u, v, du, dv, w, depth, tail))
     return out
+
+
+def _build_wedges(pillow: Pillow, face: str, requests: list[tuple]) -> list[Wedge]:
+    if not requests:
+        return []
+    req = np.array(requests, dtype=float)
+    points, normals = _face_points(pillow, face, req[:, :2])
+    right, down = FACE_POSES[face][0], FACE_POSES[face][1]
+    return [
+        wedge(face, s, n, du * right + dv * down, width_um=w, depth_um=depth, tail_um=tail)
+        for s, n, (_, _, du, dv, w, depth, tail) in zip(points, normals, req, strict=True)
+    ]
 
 
 def _inscribe_face(pillow: Pillow, face: str, rng: np.random.Generator):
@@ -128,15 +137,12 @@ def _inscribe_face(pillow: Pillow, face: str, rng: np.random.Generator):
     pitch = rng.uniform(4200.0, 5000.0)
     rulings = np.arange(-v_max + pitch, v_max - 0.5 * pitch, pitch)
     rows = np.concatenate([[-v_max], rulings])
-    wedges: list[Wedge] = []
     pieces: list[Polyhedron] = []
+    us = np.linspace(-u_max, u_max, int(2 * u_max // 3000) + 2)
     for v in rulings:
         depth = rng.uniform(50.0, 110.0)
-        us = np.linspace(-u_max, u_max, int(2 * u_max // 3000) + 2)
-        ends = []
-        for u in us:
-            s, n, _, _ = _face_point(pillow, face, u, v)
-            ends.append((s - depth * n, n))
+        points, normals = _face_points(pillow, face, np.stack([us, np.full_like(us, v)], -1))
+        ends = [(s - depth * n, n) for s, n in zip(points, normals, strict=True)]
         for (p0, n0), (p1, n1) in zip(ends[:-1], ends[1:], strict=True):
             axis = (p1 - p0) / np.linalg.norm(p1 - p0)
             pieces.append(
@@ -148,6 +154,7 @@ def _inscribe_face(pillow: Pillow, face: str, rng: np.random.Generator):
                     top_um=(p0 + p1) / 2 + depth * (n0 + n1) / 2,
                 )
             )
+    requests: list[tuple] = []
     for v_top in rows:
         row_um = min(pitch, v_max - v_top) - 300.0
         if row_um < 1500:
@@ -155,9 +162,9 @@ def _inscribe_face(pillow: Pillow, face: str, rng: np.random.Generator):
         u = -u_max + rng.uniform(0, 800)
         while u < u_max - 2500:
             if rng.uniform() < 0.9:
-                wedges += _sign_wedges(pillow, face, rng, u, v_top + 250.0, row_um)
+                requests += _sign_requests(rng, u, v_top + 250.0, row_um)
             u += rng.uniform(2800.0, 4200.0)
-    return wedges, pieces
+    return _build_wedges(pillow, face, requests), pieces
 
 
 def _inscribe_edge(pillow: Pillow, face: str, rng: np.random.Generator) -> list[Wedge]:
@@ -166,26 +173,17 @@ def _inscribe_edge(pillow: Pillow, face: str, rng: np.random.Generator) -> list[
     r = pillow.edge_radius_um
     along_u = face in ("top", "bottom")
     half = (a if along_u else b) - 0.8 * r
-    out = []
+    requests = []
     for t in np.arange(-half, half, rng.uniform(2500, 3500)):
         if rng.uniform() < 0.35:
             continue
-        u, v = (t, 0.0) if along_u else (0.0, t)
-        s, n, right, down = _face_point(pillow, face, u, v)
         w = rng.uniform(900.0, 1500.0)
-        direction = right if along_u else down
-        out.append(
-            wedge(
-                face,
-                s,
-                n,
-                direction,
-                width_um=w,
-                depth_um=w * rng.uniform(0.12, 0.2),
-                tail_um=w * rng.uniform(0.0, 1.2),
-            )
-        )
-    return out
+        depth, tail = w * rng.uniform(0.12, 0.2), w * rng.uniform(0.0, 1.2)
+        if along_u:
+            requests.append((t, 0.0, 1.0, 0.0, w, depth, tail))
+        else:
+            requests.append((0.0, t, 0.0, 1.0, w, depth, tail))
+    return _build_wedges(pillow, face, requests)
 
 
 def _chips(pillow: Pillow, rng: np.random.Generator, count: int) -> list[Polyhedron]:
