@@ -80,7 +80,7 @@ def run_capture(scan: SpoolScan, settings: Settings, *, progress: Progress | Non
     """Open the devices, capture the scan's pending shots, close the devices."""
     meta = scan.meta
     target = "reference" if meta["kind"] == "calibration" else "object"
-    devices = open_devices(settings, target=target)
+    devices = open_devices(settings, target=target, face=meta.get("face"))
     try:
         record = camera_record(settings, devices.camera.bit_depth)
         reflectance = devices.reference_reflectance or settings.reference_reflectance

@@ -46,10 +46,11 @@ def _stage(settings: Settings, url: str) -> GrblStage:
     )
 
 
-def open_devices(settings: Settings, *, target: str) -> Devices:
-    """Connect the stage, camera and projector; ``target`` matters to the simulated camera."""
+def open_devices(settings: Settings, *, target: str, face: str | None = None) -> Devices:
+    """Connect the stage, camera and projector; ``target`` and ``face`` matter to the
+    simulated camera only (a real camera sees what lies on the stage)."""
     if settings.devices == "sim":
-        return _open_simulated(settings, target=target)
+        return _open_simulated(settings, target=target, face=face or "obverse")
     from rig_agent.devices.camera import OpenCVCamera
 
     projector = HeadlessProjector(projector_geometry(settings))
@@ -73,7 +74,7 @@ def open_devices(settings: Settings, *, target: str) -> Devices:
     return Devices(stage=stage, camera=camera, projector=projector)
 
 
-def _open_simulated(settings: Settings, *, target: str) -> Devices:
+def _open_simulated(settings: Settings, *, target: str, face: str) -> Devices:
     from rig_agent.devices.grbl_emulator import GrblEmulator
     from rig_agent.devices.simulated import SimulatedCamera, SimulatorScene
 
@@ -84,6 +85,9 @@ def _open_simulated(settings: Settings, *, target: str) -> Devices:
         polar_deg=settings.polar_deg,
         seed=settings.sim_seed,
         noise=settings.sim_noise,
+        face=face
+        if face in ("obverse", "reverse", "top", "bottom", "left", "right")
+        else "obverse",
     )
     emulator = GrblEmulator().start()
     stage = _stage(settings, emulator.port)

@@ -72,7 +72,8 @@ class SimulatedCamera(Camera):
 
 
 class SimulatorScene:
-    """Renderer on ``worker.simulate``: a synthetic tablet of ``seed`` and a white target.
+    """Renderer on ``worker.simulate``: a synthetic tablet of ``seed`` (``face`` up) and the
+    white reference target (rendered by the simulator's own reference model).
 
     Image size and sampling as the camera settings; ``noise`` is a preset of
     ``worker.simulate`` (``clean``, ``default``, ``hard``).
@@ -88,6 +89,7 @@ class SimulatorScene:
         seed: int = 0,
         noise: str = "default",
         supersample: int = 2,
+        face: str = "obverse",
     ) -> None:
         from worker.simulate.noise import noise_model
         from worker.simulate.rig import Rig
@@ -104,6 +106,7 @@ class SimulatorScene:
         self.reflectance = self.rig.reflectance_reference
         self._geometry = (width, height, pixel_size_um, supersample)
         self._seed = seed
+        self._face = face
         self._views: dict[str, Any] = {}
 
     def view(self, target: str) -> Any:
@@ -116,12 +119,13 @@ class SimulatorScene:
                     width, height, pixel_size_um, supersample, albedo=self.reflectance
                 )
             else:
-                from worker.simulate.tablet import make_tablet
+                from worker.simulate.tablet import FACE_POSES, make_tablet
                 from worker.simulate.view import render_view
 
+                pose = FACE_POSES.get(self._face, np.eye(3))
                 self._views[target] = render_view(
                     make_tablet(self._seed),
-                    np.eye(3),
+                    pose,
                     width=width,
                     height=height,
                     pixel_size_um=pixel_size_um,
