@@ -184,9 +184,19 @@ def _etag_matches(header: str, etag: str) -> bool:
     return etag in tags
 
 
-@router.api_route("/{model_id}/assets/{name:path}", methods=["GET", "HEAD"])
+@router.get("/{model_id}/assets/{name:path}")
 def read_asset(name: str, model: ReadableModel, request: Request, storage: StorageDep) -> Response:
     """A file of the model version, with caching and Range support."""
+    return _serve_asset(name, model, request, storage)
+
+
+@router.head("/{model_id}/assets/{name:path}")
+def head_asset(name: str, model: ReadableModel, request: Request, storage: StorageDep) -> Response:
+    """The headers of ``GET`` without the body."""
+    return _serve_asset(name, model, request, storage)
+
+
+def _serve_asset(name: str, model: Model, request: Request, storage: Storage) -> Response:
     info = (model.assets or {}).get(name)
     if info is None:
         raise not_found(f"asset {name!r} of model {model.id}", where="name")
