@@ -58,7 +58,7 @@ def _valid() -> tuple[dict, dict[str, np.ndarray]]:
     return manifest, images
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def valid_bundle() -> Callable[[], tuple[dict, dict[str, np.ndarray]]]:
     """``valid_bundle()`` -> (manifest dict, images by path), fresh copies each call."""
 
