@@ -25,7 +25,7 @@ from worker.simulate.rig import Rig, render_frame
 from worker.simulate.tablet import FACE_POSES, FACES, Tablet, make_tablet
 from worker.simulate.view import View, render_view
 
-__all__ = ["SimulationResult", "parse_size", "simulate_scan", "wedge_records"]
+__all__ = ["SimulationResult", "parse_size", "scan_rig", "simulate_scan", "wedge_records"]
 
 
 @dataclass(frozen=True)
@@ -140,6 +140,16 @@ def _check_fringe_range(view: View, preset_polar_deg: float, coarsest_um: float)
         )
 
 
+def scan_rig(seed: int, width: int, height: int, pixel_size_um: float, noise: NoiseModel) -> Rig:
+    """The instrument of a simulated scan (the same for every face of a seed)."""
+    return Rig(
+        seed,
+        width * pixel_size_um,
+        height * pixel_size_um,
+        irradiance_variation=noise.irradiance_variation,
+    )
+
+
 def _simulate_face(
     tablet: Tablet,
     face: str,
@@ -166,7 +176,7 @@ def _simulate_face(
         pixel_size_um=pixel,
         supersample=preset.supersample,
     )
-    rig = Rig(seed, width * pixel, height * pixel, irradiance_variation=noise.irradiance_variation)
+    rig = scan_rig(seed, width, height, pixel, noise)
     frames = plan_frames(
         preset,
         width=width,
