@@ -125,10 +125,14 @@ class LibraryClient:
         return response.json() if response.content else None
 
     def find_tablet(self, designation: str) -> int:
-        """The library id of the tablet whose designation is exactly ``designation``."""
+        """The library id of the tablet whose designation or P-number is ``designation``."""
         response = self.request("GET", "/tablets", params={"q": designation, "page_size": 50})
         body = self.expect(response, 200, what=f"looking up tablet {designation!r}")
-        matches = [t for t in body.get("items", []) if t.get("designation") == designation]
+        matches = [
+            t
+            for t in body.get("items", [])
+            if designation in (t.get("designation"), t.get("p_number"))
+        ]
         if len(matches) != 1:
             raise UploadError(
                 f"the library has {'no' if not matches else 'several'} tablet(s) with designation "
