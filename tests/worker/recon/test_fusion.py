@@ -1,0 +1,164 @@
+"""Default fusion (worker.recon.fusion): known surfaces, fringe and normal noise of known size."""
+
+import numpy as np
+import pytest
+
+from worker.recon.fusion import fuse_default
+
+S_UM = 20.0
+SIGMA_F_UM = 2.0  # fringe height noise per pixel
+SIGMA_N_RAD = 0.005  # normal noise (≈ 0.3°)
+
+
+def _surface(rows=96, cols=128):
+    """A bump with a V-groove (wedge-like crease) on a tilted plane; exact slopes."""
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float64) * S_UM
+    cx, cy = cols * S_UM / 2, rows * S_UM / 2
+    h = 80 * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * 600.0**2)) + 0.05 * x
+    gx = -(x - cx) / 600.0**2 * (h - 0.05 * x) + 0.05
+    gy = -(y - cy) / 600.0**2 * (h - 0.05 * x)
+    return h, gx, gy
+
+
+def _normals(gx, gy):
+    n = np.stack([-gx, -gy, -np.ones_like(gx)], axis=-1)
+    return (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def _noisy(rng, h, gx, gy):
+    n = _normals(
+        gx + rng.normal(0, SIGMA_N_RAD, gx.shape), gy + rng.normal(0, SIGMA_N_RAD, gy.shape)
+    )
+    f = (h + rng.normal(0, SIGMA_F_UM, h.shape)).astype(np.float32)
+    return n, f
+
+
+def _mask(shape):
+    y, x = np.mgrid[0 : shape[0], 0 : shape[1]]
+    return ((x - shape[1] / 2) / (0.46 * shape[1])) ** 2 + (
+        (y - shape[0] / 2) / (0.44 * shape[0])
+    ) ** 2 < 1
+
+
+def _rms(a):
+    return float(np.sqrt(np.mean(np.square(a))))
+
+
+def test_fused_heights_beat_both_inputs():
+    # Expected fused error: the data term averages fringe noise over the footprint where the
+    # slopes are trusted, radius L = σ_f/(s·σ_n) = 2/(20·0.005) = 20 px, i.e. ~πL² ≈ 1,200
+    # pixels: σ ≈ σ_f/√(πL²)·√ln(...) ≈ 0.1–0.2 µm. We require under σ_f/4 = 0.5 µm RMS (4×
+    # better than fringes alone), and a better shape than integrating the normals alone.
+    rng = np.random.default_rng(11)
+    h, gx, gy = _surface()
+    n, f = _noisy(rng, h, gx, gy)
+    mask = _mask(h.shape)
+    got = fuse_default(
+        n,
+        f,
+        pixel_size_um=S_UM,
+        mask=mask,
+        normal_sigma_rad=SIGMA_N_RAD,
+        height_sigma_um=SIGMA_F_UM,
+    )
+    assert np.all(np.isnan(got[~mask]))
+    err = got[mask] - h[mask]
+    assert abs(float(np.median(err))) < 0.2  # absolute heights come from the fringes
+    assert _rms(err) < SIGMA_F_UM / 4
+    assert _rms(err) < _rms(f[mask] - h[mask]) / 4
+
+
+def test_fringe_outliers_are_rejected():
+    # 1 % of fringe heights off by 60 µm (unwrapping errors) must not dent the surface: after
+    # the Cauchy re-weighting their weight is < (4σ_f/60)² ≈ 2 %, leaving dents under 0.5 µm.
+    rng = np.random.default_rng(5)
+    h, gx, gy = _surface()
+    n, f = _noisy(rng, h, gx, gy)
+    bad = rng.random(f.shape) < 0.01
+    f = np.where(bad, f + 60, f).astype(np.float32)
+    mask = _mask(h.shape)
+    got = fuse_default(
+        n,
+        f,
+        pixel_size_um=S_UM,
+        mask=mask,
+        normal_sigma_rad=SIGMA_N_RAD,
+        height_sigma_um=SIGMA_F_UM,
+    )
+    err = got[mask] - h[mask]
+    assert _rms(err - np.median(err)) < SIGMA_F_UM / 4
+    assert np.max(np.abs(err)) < 2.0
+
+
+def test_region_without_fringes_is_reached_by_slopes():
+    # A 30×30 px hole in the fringe heights (shadowed for every azimuth): heights there come
+    # from the slopes, anchored at the hole's border; a random walk of ≤ 15 steps of s·σ_n =
+    # 0.1 µm plus the border error stays well under 1 µm.
+    rng = np.random.default_rng(8)
+    h, gx, gy = _surface()
+    n, f = _noisy(rng, h, gx, gy)
+    f[33:63, 49:79] = np.nan
+    mask = _mask(h.shape)
+    got = fuse_default(
+        n,
+        f,
+        pixel_size_um=S_UM,
+        mask=mask,
+        normal_sigma_rad=SIGMA_N_RAD,
+        height_sigma_um=SIGMA_F_UM,
+    )
+    err = (got - h)[33:63, 49:79]
+    assert np.all(np.isfinite(err))
+    assert np.max(np.abs(err)) < 1.0
+
+
+def test_no_fringes_at_all_gives_the_integrated_normals_with_zero_mean():
+    h, gx, gy = _surface()
+    mask = _mask(h.shape)
+    f = np.full(h.shape, np.nan, np.float32)
+    got = fuse_default(
+        _normals(gx, gy),
+        f,
+        pixel_size_um=S_UM,
+        mask=mask,
+        normal_sigma_rad=SIGMA_N_RAD,
+        height_sigma_um=SIGMA_F_UM,
+    )
+    assert abs(float(np.mean(got[mask]))) < 0.05
+    err = got[mask] - h[mask]
+    assert np.ptp(err) < 0.2  # shape exact up to the solver's tolerance (1e-3 of ~100 µm)
+
+
+def test_inputs_are_not_modified_and_bad_sigma_is_named():
+    rng = np.random.default_rng(1)
+    h, gx, gy = _surface(32, 40)
+    n, f = _noisy(rng, h, gx, gy)
+    n0, f0 = n.copy(), f.copy()
+    fuse_default(
+        n,
+        f,
+        pixel_size_um=S_UM,
+        mask=np.ones(f.shape, bool),
+        normal_sigma_rad=0.01,
+        height_sigma_um=1.0,
+    )
+    np.testing.assert_array_equal(n, n0)
+    np.testing.assert_array_equal(f, f0)
+    with pytest.raises(ValueError, match="height_sigma_um"):
+        fuse_default(
+            n,
+            f,
+            pixel_size_um=S_UM,
+            mask=np.ones(f.shape, bool),
+            normal_sigma_rad=0.01,
+            height_sigma_um=0.0,
+        )
+    with pytest.raises(ValueError, match="fringe_height_um"):
+        fuse_default(
+            n,
+            f[:, 1:],
+            pixel_size_um=S_UM,
+            mask=np.ones(f.shape, bool),
+            normal_sigma_rad=0.01,
+            height_sigma_um=1.0,
+        )

@@ -1,0 +1,158 @@
+"""Default fusion of photometric normals and fringe heights: one weighted least-squares problem.
+
+In the spirit of Nehab, Rusinkiewicz, Davis & Ramamoorthi 2005 ("Efficiently combining
+positions and normals for precise 3D geometry"), but on the camera's pixel grid: the fused
+height h minimises
+
+    Σ_edges w_e (Δh_e − s·ḡ_e)²  +  Σ_pixels λ_p (h_p − f_p)²,
+
+with ḡ_e the mean slope of the edge's two pixels (from the normals), s the pixel size and f
+the fringe heights. The weights are inverse variances, so the solution is the maximum-
+likelihood surface under Gaussian noise:
+
+- slope term: a normal with angular error σ_θ gives a slope error σ_θ/n_z² (d tan α = dα/cos²α),
+  i.e. an error s·σ_θ/n_z² µm on an edge; steep walls (small |n_z|) are thus down-weighted
+  by n_z⁴, and pixels without a normal carry no slope term;
+- height term: λ = 1/σ_f², σ_f the fringe height noise; pixels without a fringe height
+  (shadowed for every azimuth) have λ = 0 and are reached by the slopes alone.
+
+Fringe heights that disagree with the slopes by more than `outlier_sigmas`·σ_f after a first
+solve (phase-unwrapping errors, specular spikes) are down-weighted (Cauchy IRLS) and the
+problem solved once more, warm-started.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from worker.recon.integrate import (
+    _bbox,
+    edge_targets_um,
+    slopes_from_normals,
+    solve_screened_poisson,
+)
+
+__all__ = ["fuse_default"]
+
+
+def fuse_default(
+    normals: np.ndarray,
+    fringe_height_um: np.ndarray,
+    *,
+    pixel_size_um: float,
+    mask: np.ndarray,
+    normal_sigma_rad: np.ndarray | float,
+    height_sigma_um: np.ndarray | float,
+    outlier_sigmas: float = 4.0,
+    rtol: float = 1e-3,
+) -> np.ndarray:
+    """Fuse normals and fringe heights into one height map.
+
+    normals: (H, W, 3) unit normals, n_z < 0, NaN where none.
+    fringe_height_um: (H, W) heights from the fringes in µm, NaN where none.
+    pixel_size_um: s > 0. mask: (H, W) bool, pixels to reconstruct.
+    normal_sigma_rad: angular noise of each normal, (H, W) or scalar > 0 (inf: unusable).
+    height_sigma_um: noise of each fringe height, (H, W) or scalar > 0 (inf: unusable).
+    Returns (H, W) float32 heights in µm, NaN off the mask. Where a connected part of the mask
+    has no fringe height at all its mean is set to 0.
+    """
+    n = np.asarray(normals)
+    f = np.asarray(fringe_height_um, dtype=np.float32)
+    m = np.asarray(mask, bool)
+    if n.ndim != 3 or n.shape[2] != 3:
+        raise ValueError(f"normals must have shape (H, W, 3), got {n.shape}")
+    if f.shape != n.shape[:2]:
+        raise ValueError(f"fringe_height_um shape {f.shape} does not match normals {n.shape}")
+    if m.shape != f.shape:
+        raise ValueError(f"mask shape {m.shape} does not match normals {n.shape}")
+    if not pixel_size_um > 0:
+        raise ValueError(f"pixel_size_um must be > 0, got {pixel_size_um}")
+    sig_n = np.broadcast_to(np.asarray(normal_sigma_rad, np.float32), f.shape)
+    sig_f = np.broadcast_to(np.asarray(height_sigma_um, np.float32), f.shape)
+    if np.any(sig_n <= 0) or np.any(sig_f <= 0):
+        raise ValueError("normal_sigma_rad and height_sigma_um must be > 0")
+    out = np.full(f.shape, np.nan, np.float32)
+    if not m.any():
+        return out
+    r0, r1, c0, c1 = _bbox(m)
+    crop = (slice(r0, r1), slice(c0, c1))
+    m_c = m[crop]
+    s = float(pixel_size_um)
+
+    gx, gy = slopes_from_normals(n[crop], min_abs_nz=0.05)
+    nz = np.abs(n[crop][..., 2].astype(np.float32))
+    has_slope = m_c & np.isfinite(gx) & np.isfinite(gy) & np.isfinite(sig_n[crop])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        step_sigma = s * sig_n[crop] / np.square(nz)
+        w_pix = np.where(has_slope, 1.0 / np.square(step_sigma), 0).astype(np.float32)
+    # An edge's target is the mean of two slopes; with independent errors its inverse variance
+    # is twice the harmonic mean of the pixel weights, but neighbouring normals share errors
+    # (smooth shading, interreflections), so the conservative harmonic mean is used. It is 0
+    # when either end has no slope.
+    wx = _edge_weight(w_pix[:, 1:], w_pix[:, :-1])
+    wy = _edge_weight(w_pix[1:, :], w_pix[:-1, :])
+    tx, ty = edge_targets_um(gx, gy, pixel_size_um=s)
+
+    f_c = f[crop]
+    has_f = m_c & np.isfinite(f_c) & np.isfinite(sig_f[crop])
+    with np.errstate(divide="ignore"):
+        lam = np.where(has_f, 1.0 / np.square(sig_f[crop]), 0).astype(np.float32)
+
+    lam = _anchor_parts_without_data(m_c, lam, wx, wy)
+    x0 = np.where(has_f, f_c, np.float32(np.nanmedian(f_c[has_f]) if has_f.any() else 0))
+    sol = solve_screened_poisson(tx, ty, wx, wy, data_um=f_c, data_weight=lam, x0_um=x0, rtol=rtol)
+    h = sol.height_um
+    if has_f.any() and outlier_sigmas > 0:
+        with np.errstate(invalid="ignore"):
+            z = (h - f_c) / (outlier_sigmas * sig_f[crop])
+        robust = np.where(has_f, 1.0 / (1.0 + np.square(np.nan_to_num(z))), 1).astype(np.float32)
+        if np.any(robust < 0.5):
+            sol = solve_screened_poisson(
+                tx, ty, wx, wy, data_um=f_c, data_weight=lam * robust, x0_um=h, rtol=rtol
+            )
+            h = sol.height_um
+    h = _zero_mean_where_no_data(h, m_c, has_f)
+    out[crop] = np.where(m_c, h, np.nan)
+    return out
+
+
+def _zero_mean_where_no_data(h, mask, has_data):
+    from scipy import ndimage
+
+    labels, count = ndimage.label(mask)
+    if count == 0:
+        return h
+    index = np.arange(1, count + 1)
+    strong = ndimage.maximum(has_data, labels, index=index)
+    means = ndimage.mean(h, labels, index=index)
+    offset = np.concatenate([[0.0], np.where(strong, 0.0, means)]).astype(np.float32)
+    return h - offset[labels]
+
+
+def _edge_weight(wa, wb):
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = 2.0 * wa * wb / (wa + wb)
+    return np.where((wa > 0) & (wb > 0), w, 0).astype(np.float32)
+
+
+def _anchor_parts_without_data(mask, lam, wx, wy):
+    """Give a faint pull towards 0 to connected parts that no fringe height reaches.
+
+    Such a part (a photometric-only bundle, or an island shadowed for every azimuth) is
+    defined by its slopes up to a constant; the faint term fixes that constant at 0 mean
+    without bending the surface (it is 1e-6 of the part's mean slope weight).
+    """
+    from scipy import ndimage
+
+    labels, count = ndimage.label(mask)
+    if count == 0:
+        return lam
+    has_data = ndimage.maximum(lam > 0, labels, index=np.arange(1, count + 1))
+    if np.all(has_data):
+        return lam
+    w_pix = np.zeros_like(lam)
+    w_pix[:, 1:] += wx
+    w_pix[1:, :] += wy
+    scale = float(np.median(w_pix[mask & (w_pix > 0)])) if np.any(w_pix[mask] > 0) else 1.0
+    missing = np.concatenate([[False], ~np.asarray(has_data, bool)])[labels]
+    return np.where(missing, np.float32(scale * 1e-6), lam)

@@ -1,0 +1,299 @@
+"""Integration of surface slopes into heights on a masked pixel grid.
+
+The one numerical core of stages 6 (normals alone) and the default fusion: a weighted
+least-squares problem on the pixel grid,
+
+    E(h) = Σ_x-edges wx (h[r, c+1] − h[r, c] − tx)² + Σ_y-edges wy (h[r+1, c] − h[r, c] − ty)²
+         + Σ_pixels λ (h − d)²,
+
+whose normal equations (a screened Poisson equation with variable coefficients) are solved by
+conjugate gradients preconditioned with the constant-coefficient operator w̄·L + λ̄·I, where L
+is the Neumann Laplacian, diagonalised by the type-II DCT (Simchony, Chellappa & Shao 1990,
+"Direct analytical methods for solving Poisson equations in computer vision problems"; the
+least-squares view of Quéau, Durou & Aujol 2018, "Normal integration: a survey").
+
+Conventions (SCAN_BUNDLE.md): n ∝ (−∂h/∂x, −∂h/∂y, −1), hence ∂h/∂x = n_x/n_z and
+∂h/∂y = n_y/n_z (dimensionless); x runs along columns, y along rows; h in µm.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import fft, ndimage
+
+__all__ = [
+    "ScreenedPoisson",
+    "edge_targets_um",
+    "integrate_normals",
+    "slopes_from_normals",
+    "solve_screened_poisson",
+]
+
+
+def slopes_from_normals(normals: np.ndarray, *, min_abs_nz: float = 1e-3):
+    """Slopes (∂h/∂x, ∂h/∂y) of the surface whose unit normals are given.
+
+    normals: (H, W, 3) float, n_z < 0 (facing the camera); NaN allowed.
+    Returns gx, gy: (H, W) float32, dimensionless; NaN where the normal is missing or
+    |n_z| < min_abs_nz (a wall seen edge-on has no finite slope).
+    """
+    n = np.asarray(normals)
+    if n.ndim != 3 or n.shape[2] != 3:
+        raise ValueError(f"normals must have shape (H, W, 3), got {n.shape}")
+    nz = n[..., 2].astype(np.float32)
+    bad = ~(np.abs(nz) >= min_abs_nz)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gx = n[..., 0].astype(np.float32) / nz
+        gy = n[..., 1].astype(np.float32) / nz
+    gx[bad] = np.nan
+    gy[bad] = np.nan
+    return gx, gy
+
+
+def edge_targets_um(gx: np.ndarray, gy: np.ndarray, *, pixel_size_um: float):
+    """Height differences along grid edges predicted by per-pixel slopes (trapezoid rule).
+
+    gx, gy: (H, W) dimensionless slopes. Returns tx (H, W−1) = s·(gx[:, c] + gx[:, c+1])/2 and
+    ty (H−1, W) = s·(gy[r] + gy[r+1])/2 in µm (NaN where an endpoint is NaN).
+    """
+    s = float(pixel_size_um)
+    tx = (gx[:, 1:] + gx[:, :-1]) * np.float32(0.5 * s)
+    ty = (gy[1:, :] + gy[:-1, :]) * np.float32(0.5 * s)
+    return tx, ty
+
+
+@dataclass(frozen=True)
+class ScreenedPoisson:
+    """Result of `solve_screened_poisson`: heights (H, W) float32 µm, iterations, residual."""
+
+    height_um: np.ndarray
+    iterations: int
+    relative_residual: float
+
+
+def _apply(h, wx, wy, lam):
+    """A·h for A = Dxᵀ Wx Dx + Dyᵀ Wy Dy + diag(λ)."""
+    out = lam * h
+    ex = wx * (h[:, 1:] - h[:, :-1])
+    out[:, 1:] += ex
+    out[:, :-1] -= ex
+    ey = wy * (h[1:, :] - h[:-1, :])
+    out[1:, :] += ey
+    out[:-1, :] -= ey
+    return out
+
+
+def _rhs(tx, ty, wx, wy, lam, data):
+    b = lam * data
+    ex = wx * tx
+    b[:, 1:] += ex
+    b[:, :-1] -= ex
+    ey = wy * ty
+    b[1:, :] += ey
+    b[:-1, :] -= ey
+    return b
+
+
+def _dct_preconditioner(shape, w_bar, lam_bar):
+    rows, cols = shape
+    ky = 2.0 - 2.0 * np.cos(np.pi * np.arange(rows) / rows)
+    kx = 2.0 - 2.0 * np.cos(np.pi * np.arange(cols) / cols)
+    denom = w_bar * (ky[:, None] + kx[None, :]) + lam_bar
+    inv = np.zeros_like(denom)
+    np.divide(1.0, denom, out=inv, where=denom > 0)
+    inv = inv.astype(np.float32)
+
+    def apply(r):
+        return fft.idctn(fft.dctn(r, norm="ortho") * inv, norm="ortho")
+
+    return apply
+
+
+def solve_screened_poisson(
+    tx: np.ndarray,
+    ty: np.ndarray,
+    wx: np.ndarray,
+    wy: np.ndarray,
+    *,
+    data_um: np.ndarray | None = None,
+    data_weight: np.ndarray | None = None,
+    x0_um: np.ndarray | None = None,
+    rtol: float = 1e-4,
+    max_iter: int = 500,
+) -> ScreenedPoisson:
+    """Minimise E(h) (module docstring) by DCT-preconditioned conjugate gradients.
+
+    tx: (H, W−1) µm target differences h[r, c+1] − h[r, c]; wx: same shape, weights ≥ 0.
+    ty: (H−1, W) µm targets for h[r+1, c] − h[r, c]; wy: same shape.
+    data_um: (H, W) µm target heights (ignored where data_weight is 0); data_weight: (H, W) λ ≥ 0.
+    A pixel with no edge and no data weight is unconstrained: it is returned as 0.
+    Without data (λ ≡ 0) heights are defined up to a constant per connected part; the
+    solution returned has the minimum norm for the preconditioned iteration (mean ≈ 0).
+    """
+    wx = np.asarray(wx, dtype=np.float32)
+    wy = np.asarray(wy, dtype=np.float32)
+    rows, cols = wy.shape[0] + 1, wx.shape[1] + 1
+    if wx.shape != (rows, cols - 1) or np.shape(tx) != wx.shape:
+        raise ValueError(f"tx and wx must have shape {(rows, cols - 1)}")
+    if wy.shape != (rows - 1, cols) or np.shape(ty) != wy.shape:
+        raise ValueError(f"ty and wy must have shape {(rows - 1, cols)}")
+    if np.any(wx < 0) or np.any(wy < 0):
+        raise ValueError("wx and wy must be non-negative")
+    tx = np.where(wx > 0, np.nan_to_num(np.asarray(tx, np.float32)), np.float32(0))
+    ty = np.where(wy > 0, np.nan_to_num(np.asarray(ty, np.float32)), np.float32(0))
+    if data_weight is None:
+        lam = np.zeros((rows, cols), np.float32)
+        data = np.zeros((rows, cols), np.float32)
+    else:
+        lam = np.asarray(data_weight, np.float32)
+        if lam.shape != (rows, cols) or data_um is None or np.shape(data_um) != (rows, cols):
+            raise ValueError(f"data_um and data_weight must have shape {(rows, cols)}")
+        if np.any(lam < 0):
+            raise ValueError("data_weight must be non-negative")
+        data = np.where(lam > 0, np.nan_to_num(np.asarray(data_um, np.float32)), np.float32(0))
+
+    deg = lam.copy()
+    deg[:, 1:] += wx
+    deg[:, :-1] += wx
+    deg[1:, :] += wy
+    deg[:-1, :] += wy
+    free = deg <= 0
+    constrained = ~free
+    active_w = np.concatenate([wx[wx > 0], wy[wy > 0]])
+    w_bar = float(np.median(active_w)) if active_w.size else 1.0
+    lam_bar = float(lam[constrained].mean()) if constrained.any() else 0.0
+    pure_neumann = lam_bar == 0.0
+    # Pixels that no term touches (off the mask) form a separate block of the system; giving
+    # them the preconditioner's own operator (membrane w̄ to each other, screening λ̄ towards 0)
+    # keeps A close to w̄·L + λ̄·I so that CG converges in a few iterations.
+    if free.any():
+        wx = np.where(free[:, 1:] & free[:, :-1], np.float32(w_bar), wx)
+        wy = np.where(free[1:, :] & free[:-1, :], np.float32(w_bar), wy)
+        lam = np.where(free, np.float32(lam_bar if lam_bar > 0 else w_bar * 1e-3), lam)
+    precond = _dct_preconditioner((rows, cols), w_bar, lam_bar)
+
+    b = _rhs(tx, ty, wx, wy, lam, data)
+    h = (
+        np.zeros((rows, cols), np.float32)
+        if x0_um is None
+        else np.nan_to_num(np.asarray(x0_um, np.float32)).copy()
+    )
+    r = b - _apply(h, wx, wy, lam)
+    b_norm = float(np.linalg.norm(b)) or 1.0
+    z = precond(r)
+    if pure_neumann:
+        z -= z.mean()
+    p = z.copy()
+    rz = float(np.vdot(r, z))
+    it = 0
+    res = float(np.linalg.norm(r)) / b_norm
+    while res > rtol and it < max_iter:
+        ap = _apply(p, wx, wy, lam)
+        pap = float(np.vdot(p, ap))
+        if pap <= 0:
+            break
+        alpha = rz / pap
+        h += np.float32(alpha) * p
+        r -= np.float32(alpha) * ap
+        z = precond(r)
+        if pure_neumann:
+            z -= z.mean()
+        rz_new = float(np.vdot(r, z))
+        p = z + np.float32(rz_new / rz) * p
+        rz = rz_new
+        it += 1
+        res = float(np.linalg.norm(r)) / b_norm
+    h[free] = 0
+    return ScreenedPoisson(height_um=h.astype(np.float32), iterations=it, relative_residual=res)
+
+
+def masked_edge_weights(mask: np.ndarray, weight: np.ndarray | None = None):
+    """Edge weights (H, W−1), (H−1, W): the smaller pixel weight of the two ends, 0 off the mask."""
+    m = np.asarray(mask, bool)
+    w = m.astype(np.float32) if weight is None else np.where(m, weight, 0).astype(np.float32)
+    wx = np.minimum(w[:, 1:], w[:, :-1])
+    wy = np.minimum(w[1:, :], w[:-1, :])
+    return wx, wy
+
+
+def integrate_normals(
+    normals: np.ndarray, *, pixel_size_um: float, mask: np.ndarray, rtol: float = 1e-5
+) -> np.ndarray:
+    """Heights whose gradient best fits the normals in the least-squares sense, on the mask.
+
+    normals: (H, W, 3) unit normals facing the camera (n_z < 0), NaN allowed.
+    pixel_size_um: lateral sampling s > 0. mask: (H, W) bool, pixels to reconstruct.
+    Returns (H, W) float32 heights in µm, NaN off the mask; each connected part of the mask
+    is defined up to a constant, which is chosen so that its mean height is 0.
+    Slopes of pixels with |n_z| < 0.05 (walls steeper than ~87°) are left out.
+    """
+    if not pixel_size_um > 0:
+        raise ValueError(f"pixel_size_um must be > 0, got {pixel_size_um}")
+    m = np.asarray(mask, bool)
+    if m.shape != np.shape(normals)[:2]:
+        raise ValueError(f"mask shape {m.shape} does not match normals {np.shape(normals)}")
+    out = np.full(m.shape, np.nan, np.float32)
+    if not m.any():
+        return out
+    r0, r1, c0, c1 = _bbox(m)
+    m_c = m[r0:r1, c0:c1]
+    gx, gy = slopes_from_normals(np.asarray(normals)[r0:r1, c0:c1], min_abs_nz=0.05)
+    valid = m_c & np.isfinite(gx) & np.isfinite(gy)
+    tx, ty = edge_targets_um(gx, gy, pixel_size_um=pixel_size_um)
+    # Masked pixels without a usable normal are bridged by a weak membrane (target 0) so that
+    # they neither float free nor pull on the slopes around them.
+    wx, wy = masked_edge_weights(m_c, np.where(valid, np.float32(1), np.float32(1e-2)))
+    x0 = _coarse_guess(gx, gy, m_c, pixel_size_um, rtol)
+    sol = solve_screened_poisson(tx, ty, wx, wy, x0_um=x0, rtol=rtol, max_iter=2000)
+    h = _zero_mean_per_component(sol.height_um, m_c)
+    out[r0:r1, c0:c1] = np.where(m_c, h, np.nan)
+    return out
+
+
+def _coarse_guess(gx, gy, mask, pixel_size_um, rtol):
+    """Cascadic initial guess: the same problem solved on a grid twice as coarse, upsampled.
+
+    The DCT preconditioner is exact only for a rectangle; on a ragged mask the smooth,
+    long-wavelength error is what CG resolves slowly, and a coarse grid removes it cheaply.
+    """
+    rows, cols = mask.shape
+    if min(rows, cols) < 64:
+        return None
+    r2, c2 = rows // 2 * 2, cols // 2 * 2
+
+    m_blocks = mask[:r2, :c2].reshape(r2 // 2, 2, c2 // 2, 2)
+    m2 = m_blocks.sum(axis=(1, 3)) >= 2
+    gx_m = np.where(mask, gx, np.nan)[:r2, :c2].reshape(m_blocks.shape)
+    gy_m = np.where(mask, gy, np.nan)[:r2, :c2].reshape(m_blocks.shape)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        gx2 = np.nanmean(gx_m, axis=(1, 3)).astype(np.float32)
+        gy2 = np.nanmean(gy_m, axis=(1, 3)).astype(np.float32)
+    valid2 = m2 & np.isfinite(gx2) & np.isfinite(gy2)
+    tx2, ty2 = edge_targets_um(gx2, gy2, pixel_size_um=2 * pixel_size_um)
+    wx2, wy2 = masked_edge_weights(m2, np.where(valid2, np.float32(1), np.float32(1e-2)))
+    x0 = _coarse_guess(gx2, gy2, m2, 2 * pixel_size_um, rtol)
+    h2 = solve_screened_poisson(tx2, ty2, wx2, wy2, x0_um=x0, rtol=rtol, max_iter=2000).height_um
+    up = cv2.resize(h2, (c2, r2), interpolation=cv2.INTER_LINEAR)
+    out = np.zeros((rows, cols), np.float32)
+    out[:r2, :c2] = up
+    return out
+
+
+def _bbox(mask):
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    return rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+
+
+def _zero_mean_per_component(h, mask):
+    labels, n = ndimage.label(mask)
+    if n == 0:
+        return h
+    means = ndimage.mean(h, labels, index=np.arange(1, n + 1))
+    offset = np.concatenate([[0.0], means]).astype(np.float32)
+    return h - offset[labels]
