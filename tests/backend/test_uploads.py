@@ -309,3 +309,45 @@ def test_others_cannot_touch_an_upload(client, world):
     assert put(client, world, upload_id, 0, b"q" * 10, role="admin").status_code == 200
     missing = "00000000-0000-4000-8000-000000000000"
     assert put(client, world, missing, 0, b"q").status_code == 404
+
+
+def test_a_broken_connection_keeps_what_arrived(client, world, app):
+    """The client vanishes after 10 of 40 bytes: those 10 are on disk and recorded."""
+    import asyncio
+
+    upload_id = create(client, world, b"b" * 40).json()["id"]
+    messages = [
+        {"type": "http.request", "body": b"a" * 10, "more_body": True},
+        {"type": "http.disconnect"},
+    ]
+
+    async def receive():
+        return messages.pop(0) if messages else {"type": "http.disconnect"}
+
+    async def send(_message):
+        pass
+
+    scope = {
+        "type": "http",
+        "asgi": {"version": "3.0"},
+        "http_version": "1.1",
+        "method": "PUT",
+        "scheme": "http",
+        "path": f"{API}/uploads/{upload_id}/chunks",
+        "raw_path": f"{API}/uploads/{upload_id}/chunks".encode(),
+        "query_string": b"offset=20",
+        "root_path": "",
+        "headers": [
+            (b"host", b"testserver"),
+            (b"authorization", world.headers("staff_own")["Authorization"].encode()),
+            (b"content-type", b"application/octet-stream"),
+            (b"content-length", b"20"),
+        ],
+        "server": ("testserver", 80),
+        "client": ("127.0.0.1", 5000),
+    }
+    asyncio.run(app(scope, receive, send))
+    state = client.get(f"{API}/uploads/{upload_id}", headers=world.headers("staff_own")).json()
+    assert state["ranges"] == [[20, 30]]
+    part = app.state.settings.data_dir / "uploads" / f"{upload_id}.part"
+    assert part.read_bytes()[20:30] == b"a" * 10
