@@ -64,6 +64,9 @@ def capture(
             f"Every frame captured so far is safe in {scan.path}. When the problem is fixed, "
             f"run `rig-agent resume {scan.id[:8]}`."
         ) from exc
+    except BaseException as exc:  # Ctrl-C or a bug: record it, keep every frame, re-raise
+        scan.update_state(phase="interrupted", problem=f"the agent stopped ({exc!r})")
+        raise
     scan.update_state(phase="captured", problem=None)
 
 

@@ -7,7 +7,7 @@ import json
 import pytest
 
 from rig_agent.__main__ import main
-from rig_agent.spool import Spool
+from rig_agent.spool import Spool, SpoolScan
 from worker.bundle import open_bundle, validate_bundle
 
 TOKEN = "rig-test-token"  # the fake library's token (conftest)
@@ -36,7 +36,7 @@ def config(tmp_path):
 
 
 @pytest.mark.slow
-def test_simulated_calibrate_scan_check_upload_clean(
+def test_simulated_calibrate_scan_crash_resume_upload_clean(
     config, tmp_path, capsys, library, monkeypatch
 ):
     run = lambda *args: main(["--config", str(config), *args])  # noqa: E731
@@ -45,12 +45,33 @@ def test_simulated_calibrate_scan_check_upload_clean(
     assert "run `rig-agent calibrate` first" in capsys.readouterr().err
 
     assert run("calibrate") == 0
-    assert run("scan", "--tablet", "P123456", "--face", "obverse", "--museum-number", "BM 1") == 0
-    out = capsys.readouterr().out
-    assert "Quality check passed" in out and "ready to upload" in out
 
+    # The scan PC "loses power" at the 10th frame: the process stops, the spool stays.
+    real_save = SpoolScan.save_frame
+    saved = []
+
+    def save_then_crash(self, shot, image):
+        if len(saved) == 9:
+            raise KeyboardInterrupt
+        saved.append(shot.key)
+        return real_save(self, shot, image)
+
+    monkeypatch.setattr(SpoolScan, "save_frame", save_then_crash)
+    assert run("scan", "--tablet", "P123456", "--face", "obverse", "--museum-number", "BM 1") == 130
+    assert "every frame captured so far is in the spool" in capsys.readouterr().err
+    monkeypatch.setattr(SpoolScan, "save_frame", real_save)
     spool = Spool(tmp_path / "spool")
     calibration, scan = spool.scans()
+    assert len(scan.pending()) == len(scan.shots) - 9
+    assert scan.state["phase"] == "interrupted" and "KeyboardInterrupt" in scan.state["problem"]
+
+    assert run("resume") == 0
+    out = capsys.readouterr().out
+    assert "Quality check passed" in out and "ready to upload" in out
+    keys = [
+        json.loads(line)["key"] for line in (scan.path / "journal.jsonl").read_text().splitlines()
+    ]
+    assert sorted(keys) == sorted(s.key for s in scan.shots)  # none twice, none lost
     bundle = scan.path / "bundle.zip"
     assert validate_bundle(bundle) == []
     with open_bundle(bundle) as opened:
