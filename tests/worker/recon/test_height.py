@@ -1,0 +1,104 @@
+import numpy as np
+import pytest
+
+from worker.recon.height import combine_azimuths, fill_holes, height_from_phase
+
+
+def test_height_from_phase_follows_the_spec_sign():
+    # A point raised toward the camera (h > 0) shifts the phase by Δψ = −2π h tanθ / P.
+    h = np.array([[0.0, 10.0, -25.0]])
+    dpsi = -2 * np.pi * h * np.tan(np.deg2rad(30.0)) / 400.0
+    np.testing.assert_allclose(
+        height_from_phase(dpsi, period_um=400.0, polar_deg=30.0), h, atol=1e-4
+    )
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "culprit"),
+    [
+        ({"period_um": 0.0, "polar_deg": 30.0}, "period_um"),
+        ({"period_um": 1.0, "polar_deg": 90.0}, "polar_deg"),
+    ],
+)
+def test_height_from_phase_rejects_bad_input(kwargs, culprit):
+    with pytest.raises(ValueError, match=culprit):
+        height_from_phase(np.zeros(3), **kwargs)
+
+
+def test_combine_azimuths_rejects_corrupted_and_shadowed_azimuths():
+    rng = np.random.default_rng(4)
+    a, shape = 5, (40, 40)
+    truth = rng.uniform(-300, 300, shape)
+    sigma = 2.0
+    heights = truth[None] + rng.normal(0.0, sigma, (a,) + shape)
+    weight = np.ones((a,) + shape)
+    # Azimuth 1 is corrupted (a wrong fringe order, +40 µm) on the left half.
+    heights[1, :, :20] += 40.0
+    # Azimuth 3 is shadowed on the top rows: garbage heights with weight 0.
+    heights[3, :10] = 1e4
+    weight[3, :10] = 0.0
+    # Azimuth 4 has no data at all on one column.
+    heights[4, :, 35] = np.nan
+    res = combine_azimuths(heights, weight)
+    # The mean of n inliers has σ/√n; with n ≥ 3 the error stays below 5.5·σ/√3 (1,600 pixels,
+    # chance of exceeding ~1e-4 each... 5.5σ of the mean: negligible).
+    n = res.azimuths_used
+    assert np.all(np.abs(res.height_um - truth) <= 5.5 * sigma / np.sqrt(n))
+    expected = np.full(shape, 5)
+    expected[:, :20] -= 1
+    expected[:10] -= 1
+    expected[:, 35] -= 1
+    # An honest inlier deviates from the median of n ≈ 4 with sd ≈ σ·sqrt(1 + π/(2n)) ≈ 1.2σ,
+    # so it falls outside 3σ with p ≈ 1 %; with ~4 inliers ~4 % of pixels lose one: bound 10 %.
+    assert np.mean(n == expected) > 0.9 and np.all(n <= expected)
+    assert np.nanmedian(res.spread_um) < 2 * sigma
+
+
+def test_combine_azimuths_nan_where_no_azimuth_sees():
+    h = np.zeros((2, 3, 3))
+    w = np.ones((2, 3, 3))
+    w[:, 1, 1] = 0
+    res = combine_azimuths(h, w)
+    assert np.isnan(res.height_um[1, 1]) and res.azimuths_used[1, 1] == 0
+    assert np.all(res.height_um[0] == 0)
+
+
+@pytest.mark.parametrize(
+    ("h", "w", "culprit"),
+    [
+        (np.zeros((3, 3)), np.zeros((3, 3)), "height_um"),
+        (np.zeros((2, 3, 3)), np.zeros((2, 3, 4)), "weight"),
+        (np.zeros((2, 3, 3)), -np.ones((2, 3, 3)), "weight"),
+    ],
+)
+def test_combine_azimuths_rejects_bad_input(h, w, culprit):
+    with pytest.raises(ValueError, match=culprit):
+        combine_azimuths(h, w)
+
+
+def test_fill_holes_reproduces_a_plane_and_leaves_the_rest():
+    yy, xx = np.mgrid[0:30, 0:40].astype(float)
+    plane = 3.0 * xx - 2.0 * yy + 7.0
+    z = plane.copy()
+    z[5:12, 8:20] = np.nan  # a hole inside the tablet
+    z[20:25, 30:33] = np.nan
+    z[:, 38:] = np.nan  # off the tablet: stays NaN
+    mask = np.ones(z.shape, dtype=bool)
+    mask[:, 38:] = False
+    before = z.copy()
+    out = fill_holes(z, mask)
+    np.testing.assert_array_equal(np.isnan(before), np.isnan(z))  # input untouched
+    # A plane is harmonic, so the discrete Laplace fill reproduces it exactly.
+    np.testing.assert_allclose(out[:, :38], plane[:, :38], atol=1e-3)
+    assert np.all(np.isnan(out[:, 38:]))
+
+
+def test_fill_holes_without_any_rim_stays_nan():
+    z = np.full((5, 5), np.nan)
+    z[0, 0] = 1.0
+    mask = np.zeros((5, 5), dtype=bool)
+    mask[2:4, 2:4] = True  # an isolated hole with no finite neighbour
+    out = fill_holes(z, mask)
+    assert np.all(np.isnan(out[2:4, 2:4]))
+    with pytest.raises(ValueError, match="mask"):
+        fill_holes(z, mask.astype(int))

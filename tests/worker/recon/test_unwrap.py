@@ -1,0 +1,107 @@
+import numpy as np
+import pytest
+
+from worker.recon.fringe import carre_phase, four_step_phase
+from worker.recon.height import height_from_phase
+from worker.recon.unwrap import (
+    paper_consistent_unwrap,
+    phase_difference,
+    temporal_unwrap,
+    wrap_phase,
+)
+
+DELTAS = np.deg2rad([0.0, 90.0, 180.0, 270.0])
+
+
+def test_wrap_phase_range():
+    x = np.array([-np.pi, np.pi, 3 * np.pi, -3.5 * np.pi, 0.25], dtype=np.float64)
+    w = wrap_phase(x)
+    np.testing.assert_allclose(w, [np.pi, np.pi, np.pi, 0.5 * np.pi, 0.25], atol=1e-12)
+    assert np.all((w > -np.pi) & (w <= np.pi))
+
+
+def _fringe_set(psi, a, m, rng, sense):
+    return sense(np.stack([a * (1 + m * np.cos(psi + d)) for d in DELTAS]), rng)
+
+
+def test_temporal_unwrap_recovers_a_surface_spanning_many_fine_periods(
+    recon_sphere, recon_sense, recon_sigma, recon_noise
+):
+    rng = np.random.default_rng(3)
+    theta = 45.0
+    tan_t = np.tan(np.deg2rad(theta))
+    scene = recon_sphere(64, radius_px=40.0, pixel_size_um=40.0)
+    # Cap height 800 µm plus a tilt of ±600 µm: |h| ≤ 1400 µm; 8 doubling periods down to
+    # 32 µm, i.e. up to 44 fringes of the finest period across the relief.
+    xx = np.arange(64)[None, :] * np.ones((64, 1))
+    h = scene.height_um + (xx - 31.5) / 31.5 * 600.0
+    periods = 4096.0 / 2.0 ** np.arange(8)
+    assert periods[0] > 2 * tan_t * np.abs(h).max()  # the spec's unambiguity condition
+    m = recon_noise["modulation"]
+    a_obj = rng.uniform(0.2, 0.4, h.shape)  # ρ·n·l varies over the object
+    u_dot_p = rng.uniform(0, 1e4, h.shape)  # arbitrary pattern coordinate per pixel
+    diffs = []
+    for p in periods:
+        psi_ref = 2 * np.pi * u_dot_p / p + 1.3
+        dpsi = -2 * np.pi * h * tan_t / p
+        o = four_step_phase(_fringe_set(psi_ref + dpsi, a_obj, m, rng, recon_sense)).phase_rad
+        r = four_step_phase(_fringe_set(psi_ref, 0.45, m, rng, recon_sense)).phase_rad
+        diffs.append(phase_difference(o, r))
+    res = temporal_unwrap(np.stack(diffs), periods)
+    h_est = height_from_phase(res.dpsi_rad, period_um=periods[-1], polar_deg=theta)
+    # σ_ψ of 4-step ≈ σ_I/(√2·B) per set (σ_I at the mean level, B = m·A); the difference
+    # adds object and reference variances; σ_h = σ_Δψ·P/(2π tanθ).
+    sig_o = recon_sigma(a_obj) / (np.sqrt(2) * m * a_obj)
+    sig_r = recon_sigma(0.45) / (np.sqrt(2) * m * 0.45)
+    sig_h = np.sqrt(sig_o**2 + sig_r**2) * periods[-1] / (2 * np.pi * tan_t)
+    # A wrong order would be an error of ≥ P_fine/tanθ = 32 µm ≈ 200 σ_h.  5.5σ over 4,096
+    # pixels is exceeded by chance with probability ~1e-4.
+    assert np.all(np.abs(h_est - h) <= 5.5 * sig_h)
+    assert np.all(res.order_residual < 0.1)
+
+
+def test_temporal_unwrap_flags_a_corrupted_level():
+    periods = np.array([800.0, 400.0, 200.0])
+    dpsi_fine = np.linspace(-12, 12, 50)[None, :] * np.ones((4, 1))  # coarsest within ±3 rad
+    levels = np.stack([dpsi_fine * 200 / p for p in periods])
+    levels[1, 0, :] += np.pi  # half a fringe off on one row of the middle level
+    res = temporal_unwrap(wrap_phase(levels), periods)
+    np.testing.assert_allclose(res.dpsi_rad[1:], dpsi_fine[1:], atol=1e-4)
+    assert np.all(res.order_residual[0] > 0.24)
+    assert np.all(res.order_residual[1:] < 1e-4)
+
+
+def test_paper_consistent_unwrap_on_mod_pi_carre_phases():
+    # Quarter-period schedule: the coarsest difference stays within ±π/2; periods double.
+    periods = 3200.0 / 2.0 ** np.arange(6)
+    dpsi0 = np.linspace(-1.4, 1.4, 40)[None, :] * np.ones((5, 1))
+    psi_ref = np.linspace(0, 9, 40)[::-1][None, :] * np.ones((5, 1))
+    half = []
+    for p in periods:
+        d = dpsi0 * periods[0] / p
+        o = np.stack([0.4 * (1 + 0.8 * np.cos(psi_ref + d + s)) for s in DELTAS])
+        r = np.stack([0.5 * (1 + 0.8 * np.cos(psi_ref + s)) for s in DELTAS])
+        po = carre_phase(o, quadrant="paper").phase_rad
+        pr = carre_phase(r, quadrant="paper").phase_rad
+        half.append(wrap_phase(po - pr, cycle_rad=np.pi))
+    res = paper_consistent_unwrap(np.stack(half), periods)
+    np.testing.assert_allclose(res.dpsi_rad, dpsi0 * periods[0] / periods[-1], atol=1e-3)
+
+
+@pytest.mark.parametrize(
+    ("wrapped", "periods", "culprit"),
+    [
+        (np.zeros((2, 4, 4)), [100.0, 200.0], "period_um"),
+        (np.zeros((2, 4, 4)), [100.0], "period_um"),
+        (np.zeros((2, 4, 4)), [100.0, -1.0], "period_um"),
+        (np.zeros((4, 4)), [100.0], "wrapped_rad"),
+    ],
+)
+def test_temporal_unwrap_rejects_bad_input(wrapped, periods, culprit):
+    with pytest.raises(ValueError, match=culprit):
+        temporal_unwrap(wrapped, periods)
+
+
+def test_phase_difference_rejects_mismatched_shapes():
+    with pytest.raises(ValueError, match="reference_rad"):
+        phase_difference(np.zeros((3, 3)), np.zeros((3, 4)))

@@ -1,0 +1,194 @@
+"""Colour: RGB reflectance from red/green/blue frames given the normals, and sRGB encoding.
+
+A colour frame of primary c at azimuth φ_k measures, after the flat field (reference target
+under the same coloured light; :func:`worker.recon.radiometry.flat_field`),
+
+    s_k = ρ_c · V_k · max(0, n·l_k),
+
+so each sample with a lit, well-inclined source gives ρ_c = s_k / (n·l_k), relative to a
+perfect white (the reference reflectance is applied by the flat field).  Samples are combined
+per pixel and channel robustly: only n·l_k ≥ ``min_cos`` (division by a small cosine amplifies
+noise and normal errors), then the sample that most others agree with (a consensus centre:
+cast shadows and highlights agree with nobody), then the mean of the samples within a band
+around it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["ColorResult", "grey_reflectance", "linear_to_srgb8", "rgb_reflectance"]
+
+_CHANNELS = {"red": 0, "green": 1, "blue": 2}
+
+
+@dataclass(frozen=True)
+class ColorResult:
+    """Output of :func:`rgb_reflectance`.
+
+    rgb : (H, W, 3) float32, linear reflectance (0…1 for real surfaces), NaN where unknown
+        and no fallback was given.
+    samples_used : (H, W, 3) int16, samples averaged per channel (0 where the fallback or
+        NaN was used).
+    fallback : (H, W) bool, pixels that took the grey fallback.
+    """
+
+    rgb: np.ndarray
+    samples_used: np.ndarray
+    fallback: np.ndarray
+
+
+def _lower_nanmedian0(x: np.ndarray) -> np.ndarray:
+    """Lower median over axis 0 ignoring NaN, by one sort (np.nanmedian is much slower)."""
+    srt = np.sort(x, axis=0)  # NaN sorts last
+    cnt = np.isfinite(x).sum(axis=0)
+    lo = np.take_along_axis(srt, np.clip((cnt - 1) // 2, 0, None)[None], axis=0)[0]
+    return np.where(cnt > 0, lo, np.nan)
+
+
+def _consensus_centre(est: np.ndarray, band: float) -> np.ndarray:
+    """Per pixel, the sample with the most samples within ±band of it (relative).
+
+    A mode rather than a mean or median: a cast shadow (≈ 0) and a highlight (far above)
+    each agree with nobody, whereas clean samples agree with each other.  Ties are broken
+    toward the lower median of the samples, so that with one clean sample and one highlight
+    the clean one wins.  est : (A, N) with NaN for unusable samples.
+    """
+    finite = np.isfinite(est)
+    lower_med = _lower_nanmedian0(est)
+    best = np.full(est.shape[1], np.nan, dtype=np.float32)
+    best_key = np.full(est.shape[1], -np.inf)
+    for j in range(est.shape[0]):
+        c = est[j]
+        support = (finite & (np.abs(est - c[None, :]) <= band * np.abs(c)[None, :])).sum(axis=0)
+        with np.errstate(invalid="ignore"):
+            closeness = np.abs(c - lower_med) / (np.abs(lower_med) + 1e-12)
+        # Support dominates; closeness (< 1 after the squash) only breaks ties.
+        key = np.where(finite[j], support - closeness / (1.0 + closeness), -np.inf)
+        better = key > best_key
+        best = np.where(better, c, best)
+        best_key = np.where(better, key, best_key)
+    return best
+
+
+def _channel_index(channel) -> np.ndarray:
+    out = []
+    for c in channel:
+        if isinstance(c, str) and c in _CHANNELS:
+            out.append(_CHANNELS[c])
+        elif isinstance(c, (int, np.integer)) and not isinstance(c, bool) and 0 <= c <= 2:
+            out.append(int(c))
+        else:
+            raise ValueError(f"channel entries must be 'red', 'green', 'blue' or 0-2, got {c!r}")
+    return np.asarray(out, dtype=np.int64)
+
+
+def rgb_reflectance(
+    shading: np.ndarray,
+    channel,
+    light_dirs: np.ndarray,
+    normals: np.ndarray,
+    *,
+    min_cos: float = 0.3,
+    band: float = 0.3,
+    min_reflectance: float = 0.02,
+    fallback_albedo: np.ndarray | None = None,
+) -> ColorResult:
+    """Robust per-channel reflectance ρ_c = s/(n·l) averaged over the colour frames.
+
+    Parameters
+    ----------
+    shading : (K, H, W) float
+        Flat-fielded colour frames (any azimuths and channels, in any order).
+    channel : sequence of K of 'red' | 'green' | 'blue' (or 0, 1, 2)
+    light_dirs : (K, 3) float
+        Source directions (:func:`worker.recon.photometric.light_directions`).
+    normals : (H, W, 3) float
+        Unit normals (photometric stereo), NaN where unknown.
+    min_cos : float
+        Smallest n·l used.
+    band : float
+        Samples within (1 ± band)·centre are averaged, the centre being the sample most
+        others agree with; the rest are shadows or highlights.
+    min_reflectance : float
+        Estimates below this are cast shadows (2 % is darker than fired or unfired clay).
+    fallback_albedo : (H, W) float, optional
+        Photometric albedo; pixels missing any channel become grey (ρ, ρ, ρ).
+    """
+    s = np.asarray(shading, dtype=np.float32)
+    if s.ndim != 3:
+        raise ValueError(f"shading must have shape (K, H, W), got {s.shape}")
+    k, h, w = s.shape
+    ch = _channel_index(channel)
+    if ch.shape != (k,):
+        raise ValueError(f"channel must have {k} entries, got {ch.shape[0]}")
+    lights = np.asarray(light_dirs, dtype=np.float32)
+    if lights.shape != (k, 3):
+        raise ValueError(f"light_dirs must have shape ({k}, 3), got {lights.shape}")
+    n = np.asarray(normals, dtype=np.float32)
+    if n.shape != (h, w, 3):
+        raise ValueError(f"normals must have shape ({h}, {w}, 3), got {n.shape}")
+    if not (0.0 < min_cos < 1.0):
+        raise ValueError(f"min_cos must lie in (0, 1), got {min_cos}")
+    if not (0.0 <= min_reflectance < 1.0):
+        raise ValueError(f"min_reflectance must lie in [0, 1), got {min_reflectance}")
+    if not (0.0 < band < 1.0):
+        raise ValueError(f"band must lie in (0, 1), got {band}")
+    if fallback_albedo is not None:
+        fallback_albedo = np.asarray(fallback_albedo, dtype=np.float32)
+        if fallback_albedo.shape != (h, w):
+            raise ValueError(f"fallback_albedo must have shape ({h}, {w})")
+
+    rgb = np.full((3, h * w), np.nan, dtype=np.float32)
+    used = np.zeros((3, h * w), dtype=np.int16)
+    nf = n.reshape(-1, 3)
+    for c in range(3):
+        sel = np.flatnonzero(ch == c)
+        if sel.size == 0:
+            continue
+        cos = lights[sel] @ nf.T  # (k_c, N)
+        sc = s[sel].reshape(sel.size, -1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            est = np.where(cos >= min_cos, sc / cos, np.nan)
+        # A cast shadow leaves ρ ≈ 0 (noise only): below min_reflectance nothing is usable.
+        est = np.where(est >= min_reflectance, est, np.nan)
+        centre = _consensus_centre(est, band)
+        keep = np.isfinite(est) & (np.abs(est - centre[None, :]) <= band * centre[None, :])
+        cnt = keep.sum(axis=0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mean = np.where(keep, est, 0.0).sum(axis=0) / cnt
+        rgb[c] = np.where(cnt > 0, mean, np.nan)
+        used[c] = cnt
+    missing = np.any(~np.isfinite(rgb), axis=0)
+    fallback = np.zeros(h * w, dtype=bool)
+    if fallback_albedo is not None:
+        fallback = missing & np.isfinite(fallback_albedo.ravel())
+        rgb[:, fallback] = fallback_albedo.ravel()[fallback]
+        used[:, fallback] = 0
+    return ColorResult(
+        rgb=np.moveaxis(rgb.reshape(3, h, w), 0, -1).copy(),
+        samples_used=np.moveaxis(used.reshape(3, h, w), 0, -1).copy(),
+        fallback=fallback.reshape(h, w),
+    )
+
+
+def grey_reflectance(albedo: np.ndarray) -> np.ndarray:
+    """(H, W) albedo → (H, W, 3) float32 grey reflectance, for bundles without colour frames."""
+    a = np.asarray(albedo, dtype=np.float32)
+    if a.ndim != 2:
+        raise ValueError(f"albedo must be 2-D, got shape {a.shape}")
+    return np.repeat(a[..., None], 3, axis=-1)
+
+
+def linear_to_srgb8(rgb: np.ndarray) -> np.ndarray:
+    """Linear reflectance → 8-bit sRGB (IEC 61966-2-1 transfer function).
+
+    Values are clipped to [0, 1]; NaN becomes 0.  V = 12.92·L for L ≤ 0.0031308, else
+    1.055·L^(1/2.4) − 0.055; then round(255·V).  Any shape; returns uint8 of the same shape.
+    """
+    x = np.asarray(rgb, dtype=np.float64)
+    x = np.clip(np.nan_to_num(x, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+    v = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+    return np.round(255.0 * v).astype(np.uint8)

@@ -1,0 +1,165 @@
+"""Wrapped fringe phase from four phase-shifted frames: 4-step and Carré estimators.
+
+Each fringe frame of one set obeys (SCAN_BUNDLE.md)
+
+    I_δ(p) = A(p) + B(p)·cos(ψ(p) + δ),   ψ = 2π(u·p′)/P + c,   δ ∈ {0, 90, 180, 270}°
+
+with A = k·ρ·V·max(0, n·l)·E(p′), B = m·A (modulation m).  The phase ψ is returned wrapped to
+(−π, π]; it carries the unknown per-set constant c, which the reference target's phase removes
+(see :mod:`worker.recon.unwrap`).
+
+The Digital Hammurabi paper (Kumar et al. 2003, Eq. 4) uses the Carré algorithm, which needs
+four frames with equal but unknown phase step 2α: a projector whose step is not exactly 90°
+(gamma, shift errors) still gives the right phase.  :func:`carre_phase` implements it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from worker.recon.unwrap import wrap_phase
+
+__all__ = ["CarrePhase", "FringePhase", "carre_phase", "four_step_phase"]
+
+
+@dataclass(frozen=True)
+class FringePhase:
+    """Output of :func:`four_step_phase`.
+
+    phase_rad : (H, W) float32, ψ wrapped to (−π, π] (argument of the pattern at δ = 0).
+    modulation : (H, W) float32, B/A (≈ m where the model holds; low in shadows, saturation,
+        blur or where interreflections add unmodulated light).  NaN where A ≤ 0.
+    amplitude : (H, W) float32, B in the units of the frames.
+    """
+
+    phase_rad: np.ndarray
+    modulation: np.ndarray
+    amplitude: np.ndarray
+
+
+@dataclass(frozen=True)
+class CarrePhase:
+    """Output of :func:`carre_phase`.
+
+    phase_rad : (H, W) float32, ψ of the first frame, wrapped to (−π, π] (full range), or
+        known only modulo π in ``quadrant="paper"`` mode (wrapped to (−π/2, π/2]).
+    modulation, amplitude : (H, W) float32, B/A and B, computed with the median step.
+    step_rad : (H, W) float32, the per-pixel estimate of the phase step 2α (NaN where
+        ill-conditioned: sin ψ ≈ 0 or no fringe contrast).
+    median_step_rad : float, the median of ``step_rad`` over well-modulated pixels.
+    """
+
+    phase_rad: np.ndarray
+    modulation: np.ndarray
+    amplitude: np.ndarray
+    step_rad: np.ndarray
+    median_step_rad: float
+
+
+def _frames(name: str, frames: np.ndarray) -> np.ndarray:
+    arr = np.asarray(frames)
+    if arr.ndim != 3 or arr.shape[0] != 4:
+        raise ValueError(f"{name} must have shape (4, H, W), got {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
+        raise ValueError(f"{name} must be real numeric, got dtype {arr.dtype}")
+    return arr.astype(np.float32, copy=False)
+
+
+def four_step_phase(frames: np.ndarray) -> FringePhase:
+    """Standard 4-step phase shifting (δ = 0, 90, 180, 270°).
+
+    With I_δ = A + B cos(ψ + δ): I_0 − I_180 = 2B cos ψ and I_270 − I_90 = 2B sin ψ, so
+    ψ = atan2(I_270 − I_90, I_0 − I_180), B = ½·sqrt((I_270 − I_90)² + (I_0 − I_180)²),
+    A = mean of the four frames.  Phase noise: σ_ψ ≈ σ_I/(√2·B) for independent frames.
+
+    frames : (4, H, W) array in the order δ = 0, 90, 180, 270°, linear radiance (not
+    flat-fielded: the phase does not depend on the scale).
+    """
+    i0, i90, i180, i270 = _frames("frames", frames)
+    s = i270 - i90
+    c = i0 - i180
+    amp = 0.5 * np.sqrt(s * s + c * c)
+    mean = 0.25 * (i0 + i90 + i180 + i270)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mod = np.where(mean > 0, amp / mean, np.float32(np.nan))
+    return FringePhase(
+        phase_rad=np.arctan2(s, c).astype(np.float32),
+        modulation=mod.astype(np.float32),
+        amplitude=amp.astype(np.float32),
+    )
+
+
+def carre_phase(
+    frames: np.ndarray,
+    *,
+    nominal_step_deg: float = 90.0,
+    quadrant: str = "full",
+) -> CarrePhase:
+    """Carré phase shifting with an unknown, equal phase step (the paper's Eq. 4).
+
+    Frames I1…I4 taken at ψ − 3α, ψ − α, ψ + α, ψ + 3α (step 2α, unknown).  With
+    a = I2 − I3 = 2B sin ψ sin α, b = I1 − I4 = 2B sin ψ sin 3α and
+    d = (I2 + I3) − (I1 + I4) = 4B cos ψ sin α sin 2α:
+
+        tan ψ = sqrt((3a − b)(a + b)) / d,     tan² α = (3a − b)/(a + b).
+
+    The square root loses the sign of sin ψ.  ``quadrant="full"`` (default) restores it from
+    the signs of (I2 − I3) and (I1 − I4), which both carry the sign of sin ψ for a step below
+    120° (their sum is used, as the better-conditioned of the two), and the sign of cos ψ
+    from d: ψ = atan2(sign(a + b)·sqrt(|(3a − b)(a + b)|), d), a full-range (−π, π] phase.
+    ``quadrant="paper"`` returns the textbook formula as written, arctan of the ratio with
+    the numerator signed by (I2 − I3) (range (−π/2, π/2): ψ only modulo π), for
+    :func:`worker.recon.unwrap.paper_consistent_unwrap`.
+
+    The returned phase is that of the FIRST frame, ψ − 3α_nominal, so that with the nominal
+    step it equals :func:`four_step_phase` on ideal data.  A miscalibrated step shifts it by
+    the same constant 3(α − α_nominal) on the object and the reference, which cancels in
+    their difference.
+
+    frames : (4, H, W) in acquisition order (nominal δ = 0, 90, 180, 270°).
+    """
+    if quadrant not in ("full", "paper"):
+        raise ValueError(f"quadrant must be 'full' or 'paper', got {quadrant!r}")
+    if not (0.0 < float(nominal_step_deg) < 120.0):
+        raise ValueError(f"nominal_step_deg must lie in (0, 120), got {nominal_step_deg}")
+    i1, i2, i3, i4 = _frames("frames", frames)
+    a = i2 - i3
+    b = i1 - i4
+    d = (i2 + i3) - (i1 + i4)
+    prod = (3.0 * a - b) * (a + b)
+    root = np.sqrt(np.abs(prod))
+    half_nominal = 0.5 * np.deg2rad(float(nominal_step_deg))
+    if quadrant == "full":
+        mid = np.arctan2(np.sign(a + b) * root, d)
+    else:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mid = np.arctan(np.sign(a) * root / d)
+    cycle = 2.0 * np.pi if quadrant == "full" else np.pi
+    phase = wrap_phase(mid - np.float32(3.0 * half_nominal), cycle_rad=cycle)
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tan2 = (3.0 * a - b) / (a + b)
+        step = 2.0 * np.arctan(np.sqrt(np.where(tan2 >= 0, tan2, np.nan)))
+    mean = 0.25 * (i1 + i2 + i3 + i4)
+    # The step is best measured where sin ψ is large relative to the noise: |a + b| big.
+    strength = np.abs(a + b)
+    good = np.isfinite(step) & (strength > np.nanpercentile(strength, 50.0))
+    median_step = float(np.median(step[good])) if good.any() else 2.0 * half_nominal
+    al = 0.5 * median_step
+    sin_a = np.sin(al)
+    sin_3a = np.sin(3.0 * al)
+    # B from the two quadratures at the median step: B sin ψ from a and b, B cos ψ from d.
+    b_sin = (a * sin_a + b * sin_3a) / (2.0 * (sin_a**2 + sin_3a**2))
+    b_cos = d / (4.0 * sin_a * np.sin(2.0 * al))
+    amp = np.sqrt(b_sin**2 + b_cos**2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mod = np.where(mean > 0, amp / mean, np.nan)
+    return CarrePhase(
+        phase_rad=phase.astype(np.float32),
+        modulation=mod.astype(np.float32),
+        amplitude=amp.astype(np.float32),
+        step_rad=step.astype(np.float32),
+        median_step_rad=median_step,
+    )

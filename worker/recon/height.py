@@ -1,0 +1,200 @@
+"""Heights from unwrapped fringe phase, their robust combination over azimuths, hole filling.
+
+Triangulation (SCAN_BUNDLE.md): relative to the reference plane the phase at p is shifted by
+Δψ = −2π·h·tanθ/P, so h = −Δψ·P/(2π·tanθ) (the paper's height-from-phase relation for a
+collimated source at polar angle θ and an orthographic camera).
+
+What the fringe height measures: the pattern seen at p left the source along the ray that
+meets the reference plane at p′ = p − h·tanθ·u, so the phase dates the surface point that the
+ray from p′ hits first.  Near a steep wall facing away from the source, or inside a cast
+shadow, the pixel sees no fringe at all (V = 0, modulation ≈ 0); on a wall facing the source
+the fringe is compressed and blurred over the pixel, and interreflections add unmodulated or
+wrongly phased light.  Those azimuths must get weight 0 (low modulation, shadow): every
+pixel seen from at least one azimuth with good modulation is then measured directly, and
+:func:`fill_holes` interpolates the rest.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.ndimage as ndi
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+__all__ = ["CombinedHeight", "combine_azimuths", "fill_holes", "height_from_phase"]
+
+
+@dataclass(frozen=True)
+class CombinedHeight:
+    """Output of :func:`combine_azimuths`.
+
+    height_um : (H, W) float32, the weighted mean of the inlier azimuths; NaN where none.
+    spread_um : (H, W) float32, weighted standard deviation of the inliers (0 with one).
+    azimuths_used : (H, W) int16, number of inlier azimuths.
+    """
+
+    height_um: np.ndarray
+    spread_um: np.ndarray
+    azimuths_used: np.ndarray
+
+
+def height_from_phase(dpsi_rad: np.ndarray, *, period_um: float, polar_deg: float) -> np.ndarray:
+    """h = −Δψ·P/(2π·tanθ) in µm, float32, same shape as ``dpsi_rad`` (unwrapped, rad)."""
+    if not (np.isfinite(period_um) and period_um > 0):
+        raise ValueError(f"period_um must be finite and > 0, got {period_um}")
+    if not (0.0 < polar_deg < 90.0):
+        raise ValueError(f"polar_deg must lie in (0, 90), got {polar_deg}")
+    dpsi = np.asarray(dpsi_rad, dtype=np.float32)
+    scale = np.float32(-period_um / (2.0 * np.pi * np.tan(np.deg2rad(polar_deg))))
+    return dpsi * scale
+
+
+def _weighted_median(values: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Per-column weighted median of (A, N) values; weight 0 or NaN values are ignored."""
+    w = np.where(np.isfinite(values), weight, 0.0)
+    key = np.where(w > 0, values, np.inf)
+    order = np.argsort(key, axis=0)
+    v = np.take_along_axis(key, order, axis=0)
+    cw = np.cumsum(np.take_along_axis(w, order, axis=0), axis=0)
+    total = cw[-1]
+    idx = np.argmax(cw >= 0.5 * total[None, :], axis=0)
+    med = np.take_along_axis(v, idx[None, :], axis=0)[0]
+    return np.where(total > 0, med, np.nan)
+
+
+def _pooled_sigma(hf: np.ndarray, wf: np.ndarray) -> float:
+    """Scan-wide σ of one azimuth's height from differences of azimuth pairs.
+
+    For two independent N(0, σ²) errors |h_i − h_j| has median 0.6745·√2·σ; the median over
+    every pixel and azimuth pair ignores up to half of corrupted pairs and, unlike the
+    per-pixel MAD of a handful of azimuths, is not biased low.
+    """
+    diffs = []
+    for i in range(hf.shape[0] - 1):
+        both = (wf[i] > 0) & (wf[i + 1] > 0)
+        diffs.append(np.abs(hf[i, both] - hf[i + 1, both]))
+    d = np.concatenate(diffs) if diffs else np.zeros(0)
+    d = d[np.isfinite(d)]
+    return float(np.median(d) / (0.6745 * np.sqrt(2.0))) if d.size else 0.0
+
+
+def combine_azimuths(
+    height_um: np.ndarray,
+    weight: np.ndarray,
+    *,
+    k_sigma: float = 3.0,
+    min_sigma_um: float | None = None,
+) -> CombinedHeight:
+    """Robust per-pixel combination of the heights of A azimuths.
+
+    1. weighted median m over the azimuths with weight > 0 (shadowed or low-modulation
+       azimuths should come with weight 0; NaN heights are ignored);
+    2. robust scale σ = 1.4826·weighted median |h − m|, floored at ``min_sigma_um``;
+    3. inliers |h − m| ≤ k_sigma·σ, result = their weighted mean.
+
+    Parameters
+    ----------
+    height_um, weight : (A, H, W) float
+        Heights (µm) and non-negative weights (e.g. modulation², or 1/σ_h²).
+    min_sigma_um : float, optional
+        Noise floor of σ (µm): with two or three azimuths the MAD can be 0.  When None it is
+        estimated from the whole scan by :func:`_pooled_sigma`.
+    """
+    h = np.asarray(height_um, dtype=np.float32)
+    w = np.asarray(weight, dtype=np.float32)
+    if h.ndim != 3:
+        raise ValueError(f"height_um must have shape (A, H, W), got {h.shape}")
+    if w.shape != h.shape:
+        raise ValueError(f"weight shape {w.shape} differs from height_um {h.shape}")
+    if np.any(w < 0):
+        raise ValueError("weight must be >= 0")
+    if not k_sigma > 0:
+        raise ValueError(f"k_sigma must be > 0, got {k_sigma}")
+    if min_sigma_um is not None and not min_sigma_um >= 0:
+        raise ValueError(f"min_sigma_um must be >= 0, got {min_sigma_um}")
+    a, rows, cols = h.shape
+    hf = h.reshape(a, -1)
+    wf = np.where(np.isfinite(hf) & np.isfinite(w.reshape(a, -1)), w.reshape(a, -1), 0.0)
+    med = _weighted_median(hf, wf)
+    dev = np.abs(hf - med[None, :])
+    sigma = 1.4826 * _weighted_median(dev, wf)
+    if min_sigma_um is None:
+        min_sigma_um = _pooled_sigma(hf, wf)
+    scale = np.maximum(np.nan_to_num(sigma, nan=0.0), np.float32(min_sigma_um))
+    inl = (wf > 0) & (dev <= k_sigma * scale[None, :])
+    wi = np.where(inl, wf, 0.0)
+    wsum = wi.sum(axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean = (wi * np.nan_to_num(hf)).sum(axis=0) / wsum
+        var = (wi * (np.nan_to_num(hf) - mean[None, :]) ** 2).sum(axis=0) / wsum
+    solved = wsum > 0
+    return CombinedHeight(
+        height_um=np.where(solved, mean, np.nan).astype(np.float32).reshape(rows, cols),
+        spread_um=np.where(solved, np.sqrt(np.maximum(var, 0.0)), np.nan)
+        .astype(np.float32)
+        .reshape(rows, cols),
+        azimuths_used=inl.sum(axis=0).astype(np.int16).reshape(rows, cols),
+    )
+
+
+def fill_holes(height: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Harmonic (Laplace) fill of the NaN pixels inside ``mask``.
+
+    Every NaN pixel of ``mask`` that is connected (4-neighbourhood, through other such pixels)
+    to a finite pixel gets the value that makes the discrete Laplacian vanish, with the finite
+    pixels as Dirichlet boundary and no flux across pixels that are neither (Neumann): the
+    smoothest surface through the hole's rim, solved as one sparse linear system.  Holes
+    without any finite neighbour stay NaN; pixels outside ``mask`` are returned unchanged.
+
+    height : (H, W) float; mask : (H, W) bool.  Returns (H, W) float32 (a new array).
+    """
+    z = np.asarray(height, dtype=np.float32)
+    m = np.asarray(mask)
+    if z.ndim != 2:
+        raise ValueError(f"height must be 2-D, got shape {z.shape}")
+    if m.shape != z.shape or m.dtype != bool:
+        raise ValueError(f"mask must be a bool array of shape {z.shape}")
+    out = z.copy()
+    known = np.isfinite(z)
+    hole = m & ~known
+    if not hole.any() or not known.any():
+        return out
+    labels, n = ndi.label(hole)
+    touching = np.unique(labels[ndi.binary_dilation(known) & hole])
+    solvable = np.isin(labels, touching[touching > 0])
+    if not solvable.any():
+        return out
+    idx = -np.ones(z.shape, dtype=np.int64)
+    idx[solvable] = np.arange(int(solvable.sum()))
+    nu = int(solvable.sum())
+    rows_l, cols_l, vals_l = [], [], []
+    diag = np.zeros(nu)
+    rhs = np.zeros(nu)
+    zz = np.where(known, z, 0.0).astype(np.float64)
+    pad_idx = np.pad(idx, 1, constant_values=-1)
+    pad_known = np.pad(known, 1, constant_values=False)
+    pad_val = np.pad(zz, 1)
+    h, w = z.shape
+    i_all = idx[solvable]
+    for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        win = (slice(1 + dr, 1 + dr + h), slice(1 + dc, 1 + dc + w))
+        nb_idx = pad_idx[win][solvable]
+        nb_known = pad_known[win][solvable]
+        with_unknown = nb_idx >= 0
+        rows_l.append(i_all[with_unknown])
+        cols_l.append(nb_idx[with_unknown])
+        vals_l.append(-np.ones(int(with_unknown.sum())))
+        # Each neighbour that takes part adds 1 to the diagonal; a known one moves to the rhs.
+        diag += with_unknown | nb_known
+        rhs += np.where(nb_known, pad_val[win][solvable], 0.0)
+    rows_l.append(np.arange(nu))
+    cols_l.append(np.arange(nu))
+    vals_l.append(diag)
+    a = sp.csr_matrix(
+        (np.concatenate(vals_l), (np.concatenate(rows_l), np.concatenate(cols_l))),
+        shape=(nu, nu),
+    )
+    out[solvable] = spla.spsolve(a.tocsc(), rhs).astype(np.float32)
+    return out
