@@ -14,6 +14,7 @@ import lzma
 import os
 import stat
 import struct
+import threading
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -67,13 +68,18 @@ class Container:
     def __init__(self, limits: Limits):
         self.limits = limits
         self._seen_bytes: dict[str, int] = {}
+        self._total_bytes = 0
+        self._lock = threading.Lock()  # readers may run in several threads
 
     def _account(self, name: str, nbytes: int) -> None:
         """Count each member once toward the total cap, however often it is read."""
-        if nbytes <= self._seen_bytes.get(name, 0):
-            return
-        self._seen_bytes[name] = nbytes
-        total = sum(self._seen_bytes.values())
+        with self._lock:
+            seen = self._seen_bytes.get(name, 0)
+            if nbytes <= seen:
+                return
+            self._seen_bytes[name] = nbytes
+            self._total_bytes += nbytes - seen
+            total = self._total_bytes
         if total > self.limits.max_total_bytes:
             raise ContainerError(
                 f"bundle holds more than max_total_bytes = {self.limits.max_total_bytes} bytes"
