@@ -31,7 +31,7 @@ from backend import crud, security
 from backend.db import make_engine, make_sessionmaker, migrate, session_scope
 from backend.main import create_app
 from backend.settings import Settings
-from backend.tables import Base, Role, Tablet
+from backend.tables import Base, Job, JobKind, JobState, Model, Role, Scan, Tablet
 
 PG_ADMIN_DSN = "host=127.0.0.1 port=5432 user=postgres dbname=postgres"
 PG_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/{name}"
@@ -130,6 +130,7 @@ class World:
     """Users of every role (with tokens) and tablets of two institutions."""
 
     sessionmaker: object
+    settings: Settings | None = None
     institution_a: int = 0
     institution_b: int = 0
     users: dict[str, int] = field(default_factory=dict)  # role -> user id
@@ -159,9 +160,51 @@ class World:
             )
             return tablet.id
 
+    def new_scan(self, tablet_id: int, *, face: str = "obverse") -> int:
+        """A scan row (no bundle stored) of ``tablet_id``; returns its id."""
+        with self.session() as session:
+            scan = Scan(
+                tablet_id=tablet_id,
+                face=face,
+                scan_uid=uuid.uuid4().hex,
+                bundle_key=f"bundles/{uuid.uuid4().hex}.zip",
+                bundle_sha256="0" * 64,
+                size_bytes=1,
+                manifest={},
+                user_id=self.users["staff_own"],
+            )
+            session.add(scan)
+            session.flush()
+            return scan.id
 
-def build_world(sessionmaker, password_hash: str) -> World:
-    world = World(sessionmaker=sessionmaker)
+    def new_job(self, tablet_id: int, *, scan_id: int | None = None, state=JobState.queued) -> int:
+        with self.session() as session:
+            job = Job(tablet_id=tablet_id, scan_id=scan_id, kind=JobKind.reconstruct, state=state)
+            session.add(job)
+            session.flush()
+            return job.id
+
+    def new_model(self, tablet_id: int, *, assets: dict | None = None) -> int:
+        """A model row (with its scan and succeeded job) of ``tablet_id``; returns its id."""
+        scan_id = self.new_scan(tablet_id)
+        job_id = self.new_job(tablet_id, scan_id=scan_id, state=JobState.succeeded)
+        with self.session() as session:
+            model = Model(
+                tablet_id=tablet_id,
+                scan_id=scan_id,
+                job_id=job_id,
+                version=1,
+                storage_prefix=f"models/{uuid.uuid4().hex}",
+                report={},
+                assets=assets or {},
+            )
+            session.add(model)
+            session.flush()
+            return model.id
+
+
+def build_world(sessionmaker, password_hash: str, settings: Settings | None = None) -> World:
+    world = World(sessionmaker=sessionmaker, settings=settings)
     with session_scope(sessionmaker) as session:
         a = crud.get_or_create_institution(session, name="Museum A")
         b = crud.get_or_create_institution(session, name="Museum B")
@@ -193,7 +236,7 @@ def build_world(sessionmaker, password_hash: str) -> World:
 
 @pytest.fixture
 def world(app, password_hash) -> World:
-    return build_world(app.state.sessionmaker, password_hash)
+    return build_world(app.state.sessionmaker, password_hash, app.state.settings)
 
 
 @pytest.fixture
