@@ -30,6 +30,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--face", choices=[*FACES, "all"], default="obverse")
     p.add_argument("--preset", choices=sorted(PRESETS), default="quick")
     p.add_argument("--noise", choices=sorted(NOISE_PRESETS), default="default")
+    p.add_argument(
+        "--mesh",
+        default=None,
+        help="scan this triangle mesh (PLY/OBJ/STL, mm, obverse toward -z) instead",
+    )
     p.add_argument("--zip", action="store_true", help="write bundle.zip instead of bundle/")
     return p
 
@@ -48,6 +53,7 @@ def main(argv: list[str] | None = None) -> int:
             noise=args.noise,
             as_zip=args.zip,
             progress=True,
+            mesh=args.mesh,
         )
     except (ValueError, FileExistsError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -17,9 +17,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from worker.bundle import write_bundle
 from worker.simulate.acquisition import PRESETS, frame_file, manifest, pixel_size_for, plan_frames
+from worker.simulate.meshview import MeshTablet, load_mesh, render_mesh_view
 from worker.simulate.noise import NoiseModel, noise_model
 from worker.simulate.rig import Rig, render_frame
 from worker.simulate.tablet import FACE_POSES, FACES, Tablet, make_tablet
@@ -50,7 +52,7 @@ def parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def wedge_records(tablet: Tablet, view: View) -> list[dict]:
+def wedge_records(tablet: Tablet | MeshTablet, view: View) -> list[dict]:
     """The wedges that face the camera and lie in the frame, in view coordinates.
 
     Each: face, centre/bottom/rim as {row, col, height_um}, direction_deg in the image
@@ -64,7 +66,7 @@ def wedge_records(tablet: Tablet, view: View) -> list[dict]:
         return {"row": float(q[1] / s), "col": float(q[0] / s), "height_um": float(-q[2])}
 
     out = []
-    for i, w in enumerate(tablet.wedges):
+    for i, w in enumerate(getattr(tablet, "wedges", ())):
         if (view.pose @ w.normal)[2] > -0.5:
             continue
         bottom = to_view(w.apex_um)
@@ -119,7 +121,7 @@ def _write_dir_atomic(target: Path, fill: Callable[[Path], None]) -> None:
         raise
 
 
-def _write_gt(gt_dir: Path, view: View, tablet: Tablet) -> None:
+def _write_gt(gt_dir: Path, view: View, tablet: Tablet | MeshTablet) -> None:
     gt = view.ground_truth()
 
     def fill(tmp: Path) -> None:
@@ -151,7 +153,7 @@ def scan_rig(seed: int, width: int, height: int, pixel_size_um: float, noise: No
 
 
 def _simulate_face(
-    tablet: Tablet,
+    tablet: Tablet | MeshTablet,
     face: str,
     face_dir: Path,
     *,
@@ -168,7 +170,8 @@ def _simulate_face(
     width, height = size
     pixel = pixel_size_for(width, height)
     pose = FACE_POSES[face]
-    view = render_view(
+    render = render_mesh_view if isinstance(tablet, MeshTablet) else render_view
+    view = render(
         tablet,
         pose,
         width=width,
@@ -235,8 +238,10 @@ def simulate_scan(
     noise: str | NoiseModel = "default",
     as_zip: bool = False,
     progress: bool = False,
+    mesh: str | os.PathLike | None = None,
 ) -> SimulationResult:
-    """Simulate the scan of one face (or ``"all"`` six) of the synthetic tablet of ``seed``.
+    """Simulate the scan of one face (or ``"all"`` six) of the synthetic tablet of ``seed``,
+    or of the triangle mesh file ``mesh`` (mm, obverse toward -z; no wedges.json entries).
 
     Refuses (FileExistsError) to overwrite an existing bundle or gt folder.
     """
@@ -253,7 +258,7 @@ def simulate_scan(
         for name in ("bundle", "bundle.zip", "gt"):
             if (d / name).exists():
                 raise FileExistsError(f"out: {d / name} exists; choose an empty --out")
-    tablet = make_tablet(seed)
+    tablet = load_mesh(mesh) if mesh is not None else make_tablet(seed)
     bundles, gts, views, n = {}, {}, {}, 0
     for f in faces:
         bundles[f], gts[f], views[f], k = _simulate_face(
@@ -287,6 +292,10 @@ def simulate_scan(
         _fsync_write(tmp, json.dumps(doc, indent=1).encode())
         os.replace(tmp, out / "poses.json")
         tmp = out / f".tablet.ply.tmp-{uuid.uuid4().hex}"
-        _fsync_write(tmp, tablet_mesh(tablet).export(file_type="ply"))
+        if isinstance(tablet, MeshTablet):
+            solid = trimesh.Trimesh(tablet.vertices_um / 1000.0, tablet.faces, process=False)
+        else:
+            solid = tablet_mesh(tablet)
+        _fsync_write(tmp, solid.export(file_type="ply"))
         os.replace(tmp, out / "tablet.ply")
     return SimulationResult(out, bundles, gts, views, n)

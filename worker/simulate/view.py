@@ -10,6 +10,7 @@ from the averaged slopes so that they agree with the averaged heights:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -17,7 +18,7 @@ import numpy as np
 from worker.simulate.raycast import cast_rays
 from worker.simulate.tablet import Tablet
 
-__all__ = ["View", "box_mean", "flat_view", "render_view", "sample_coords_um"]
+__all__ = ["View", "assemble_view", "box_mean", "flat_view", "render_view", "sample_coords_um"]
 
 BACKGROUND_REFLECTANCE = 0.03  # black velvet support
 BACKGROUND_GAP_UM = 3000.0  # support plane below the lowest visible tablet point
@@ -205,28 +206,53 @@ def render_view(
         hits = cast_rays(tablet.pillow, cav, origins, d_tab, candidates)
         z[r0:r1] = hits.t_um.reshape(r1 - r0, ws) - z0
         normals[r0:r1] = (hits.normals @ pose.T).reshape(r1 - r0, ws, 3)
-    on = np.isfinite(z)
+    return assemble_view(
+        width, height, pixel_size_um, supersample, z, normals, tablet.albedo, pose, t_xy
+    )
+
+
+def assemble_view(
+    width: int,
+    height: int,
+    pixel_size_um: float,
+    supersample: int,
+    z_um: np.ndarray,
+    normals: np.ndarray,
+    albedo: Callable[[np.ndarray], np.ndarray] | np.ndarray,
+    pose: np.ndarray,
+    t_xy: np.ndarray,
+) -> View:
+    """A View from first-hit depths z (Hs, Ws) µm (inf: no hit) measured along +z.
+
+    ``albedo`` is a function of tablet-frame points (N, 3) µm or an (Hs, Ws, 3) array;
+    h = 0 goes midway through the visible tablet, the support BACKGROUND_GAP_UM below it.
+    """
+    on = np.isfinite(z_um)
     if not on.any():
         raise ValueError("the tablet is not in the field of view")
-    z_ref = 0.5 * (z[on].min() + z[on].max())
-    h = np.where(on, z_ref - z, 0.0)
-    h_bg = h[on].min() - BACKGROUND_GAP_UM
-    h[~on] = h_bg
+    z_ref = 0.5 * (z_um[on].min() + z_um[on].max())
+    h = np.where(on, z_ref - z_um, 0.0)
+    h[~on] = h[on].min() - BACKGROUND_GAP_UM
+    normals = np.array(normals, dtype=np.float32)
     normals[~on] = (0.0, 0.0, -1.0)
-    albedo = np.full((hs, ws, 3), BACKGROUND_REFLECTANCE, dtype=np.float32)
-    gx, gy = np.meshgrid(xs, ys)
-    pts_view = np.stack([gx[on], gy[on], -h[on]], -1)
     translation = np.array([t_xy[0], t_xy[1], -z_ref])
-    pts_tab = (pts_view - translation) @ pose
-    albedo[on] = tablet.albedo(pts_tab)
+    out = np.full((*z_um.shape, 3), BACKGROUND_REFLECTANCE, dtype=np.float32)
+    if callable(albedo):
+        xs = sample_coords_um(width, pixel_size_um, supersample)
+        ys = sample_coords_um(height, pixel_size_um, supersample)
+        gx, gy = np.meshgrid(xs, ys)
+        pts_view = np.stack([gx[on], gy[on], -h[on]], -1)
+        out[on] = albedo((pts_view - translation) @ pose)
+    else:
+        out[on] = np.asarray(albedo)[on]
     return View(
         width,
         height,
         pixel_size_um,
         supersample,
         h.astype(np.float32),
-        normals.astype(np.float32),
-        albedo,
+        normals,
+        out,
         on,
         pose,
         translation,
