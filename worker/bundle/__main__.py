@@ -11,6 +11,7 @@ from worker.bundle.errors import BundleError
 from worker.bundle.reader import open_bundle, validate_bundle
 
 EXIT_INVALID = 2
+EXIT_INTERNAL = 1
 
 
 def _summary(path: str) -> str:
@@ -35,7 +36,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     check.add_argument("path", help="bundle folder or .zip")
     args = parser.parse_args(argv)
 
-    problems = validate_bundle(args.path)
+    try:
+        problems = validate_bundle(args.path)
+    except KeyboardInterrupt:
+        return 130
+    except Exception as exc:  # noqa: BLE001 - a bug of ours must still not print a traceback
+        print(f"{args.path}: internal error while validating ({type(exc).__name__}: {exc})")
+        return EXIT_INTERNAL
     if problems:
         print(f"{args.path}: invalid scan bundle, {len(problems)} problem(s):")
         for problem in problems:

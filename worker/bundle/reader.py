@@ -191,7 +191,7 @@ def _check_images(
     size = (int(camera["width"]), int(camera["height"])) if camera_ok else None
     bit_depth = int(camera["bit_depth"]) if camera_ok else None
     infos: dict[int, ImageInfo] = {}
-    out: list[Problem] = []
+    found: list[tuple[int, Problem]] = []
     seen: set[str] = set()
     for i, frame in enumerate(frames if isinstance(frames, list) else []):
         if not isinstance(frame, dict) or path_problem(frame.get("file")) is not None:
@@ -201,33 +201,46 @@ def _check_images(
             continue  # reported as a duplicate by the frame rules
         seen.add(path)
         try:
-            info, data = _header(container, path, limits)
+            info = _header(container, path, limits)
             if size is not None and (info.width, info.height) != size:
                 raise ImageError(
                     f"is {info.width}×{info.height} pixels, not camera.width × camera.height "
                     f"= {size[0]}×{size[1]} (frames[{i}])"
                 )
             infos[i] = info
-            if decode_all and bit_depth is not None:
-                values = decode(data if data is not None else container.read(path), info)
-                message = value_problem(values, bit_depth=bit_depth)
-                if message:
-                    out.append(Problem(path, message))
         except (ContainerError, ImageError) as exc:
-            out.append(Problem(path, str(exc)))
-    return infos, out
+            found.append((i, Problem(path, str(exc))))
+    if decode_all and bit_depth is not None:
+        found += _decode_problems(container, frames, infos, bit_depth=bit_depth)
+    return infos, [problem for _, problem in sorted(found, key=lambda item: item[0])]
 
 
-def _header(container: Container, path: str, limits: Limits) -> tuple[ImageInfo, bytes | None]:
-    """Image header of ``path`` (and the whole file when it had to be read for a TIFF)."""
+def _decode_problems(
+    container: Container, frames: list, infos: dict[int, ImageInfo], *, bit_depth: int
+) -> list[tuple[int, Problem]]:
+    """Decode every image once (in threads: OpenCV and zlib release the GIL); value checks."""
+
+    def check(i: int) -> tuple[int, Problem] | None:
+        path = normalize_path(frames[i]["file"])
+        try:
+            values = decode(container.read(path), infos[i])
+        except (ContainerError, ImageError) as exc:
+            return i, Problem(path, str(exc))
+        message = value_problem(values, bit_depth=bit_depth)
+        return (i, Problem(path, message)) if message else None
+
+    with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
+        return [r for r in pool.map(check, sorted(infos)) if r is not None]
+
+
+def _header(container: Container, path: str, limits: Limits) -> ImageInfo:
+    """Image header of ``path``: the first bytes of a PNG; a TIFF is read whole."""
     head = container.read(path, limit=HEAD_BYTES)
     fmt = sniff_format(head)
-    data = None
     if fmt == "png":
         info = png_info(head)
     elif fmt == "tiff":
-        data = container.read(path)
-        info = tiff_info(data)
+        info = tiff_info(container.read(path))
     else:
         raise ImageError("is not a PNG or TIFF image")
     pixels = info.width * info.height
@@ -236,7 +249,7 @@ def _header(container: Container, path: str, limits: Limits) -> tuple[ImageInfo,
             f"header claims {info.width}×{info.height} pixels, more than "
             f"max_image_pixels = {limits.max_image_pixels}"
         )
-    return info, data
+    return info
 
 
 def _load(path: str | os.PathLike, limits: Limits, *, decode_all: bool):

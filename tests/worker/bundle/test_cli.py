@@ -59,3 +59,17 @@ def test_cli_in_a_subprocess_never_shows_a_traceback(tmp_path) -> None:
     assert run.returncode == 2, run
     assert "neither a bundle folder nor a ZIP" in run.stdout
     assert "Traceback" not in run.stdout + run.stderr
+
+
+def test_an_internal_error_is_one_line(monkeypatch, capsys, tmp_path) -> None:
+    import worker.bundle.__main__ as cli
+
+    def broken(path):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(cli, "validate_bundle", broken)
+    assert main(["validate", str(tmp_path)]) == 1
+    assert (
+        capsys.readouterr().out.strip()
+        == f"{tmp_path}: internal error while validating (RuntimeError: boom)"
+    )
