@@ -365,9 +365,12 @@ class S3Storage(Storage):
         secret_access_key: str | None = None,
         region: str | None = None,
         client: Any = None,
+        multipart_threshold_bytes: int = 64 << 20,
     ):
         if not bucket:
             raise ValueError("bucket must be a non-empty bucket name")
+        if multipart_threshold_bytes < 5 << 20:
+            raise ValueError("multipart_threshold_bytes must be at least 5 MiB (S3's part size)")
         self.bucket = bucket
         if client is None:
             import boto3
@@ -387,6 +390,7 @@ class S3Storage(Storage):
                 ),
             )
         self.client = client
+        self.multipart_threshold_bytes = multipart_threshold_bytes
 
     def _call(self, key: str | None, fn: Any, **kwargs: Any) -> Any:
         from botocore.exceptions import BotoCoreError, ClientError
@@ -438,11 +442,44 @@ class S3Storage(Storage):
         try:
             with open(path, "rb") as fh:
                 actual, size = _hash_stream(fh)
-                _verify(key, sha256, actual)
-                fh.seek(0)
-                return self._put(key, fh, actual, size)
         except OSError as exc:
             raise ValueError(f"path {str(path)!r} cannot be read: {exc.strerror}") from exc
+        _verify(key, sha256, actual)
+        if size < self.multipart_threshold_bytes:
+            with open(path, "rb") as fh:
+                return self._put(key, fh, actual, size)
+        return self._put_multipart(key, path, actual, size)
+
+    def _put_multipart(self, key: str, path: Path, sha256_hex: str, size_bytes: int) -> ObjectStat:
+        """Large files (a single S3 PUT stops at 5 GB): multipart, each part checksummed."""
+        from boto3.exceptions import S3UploadFailedError
+        from boto3.s3.transfer import TransferConfig
+
+        config = TransferConfig(
+            multipart_threshold=self.multipart_threshold_bytes,
+            multipart_chunksize=self.multipart_threshold_bytes,  # S3 parts: 5 MiB or more
+            use_threads=False,
+        )
+        extra = {"Metadata": {"sha256": sha256_hex}, "ChecksumAlgorithm": "SHA256"}
+        try:
+            self._call(
+                key,
+                self.client.upload_file,
+                Filename=str(path),
+                Bucket=self.bucket,
+                Key=key,
+                ExtraArgs=extra,
+                Config=config,
+            )
+        except S3UploadFailedError as exc:
+            raise StorageError(f"object storage refused the upload: {exc}", key=key) from exc
+        stat = self.stat(key)
+        if stat.size_bytes != size_bytes:
+            self.delete(key)
+            raise StorageError(
+                f"object storage kept {stat.size_bytes} of {size_bytes} bytes", key=key
+            )
+        return stat
 
     def put_bytes(self, key: str, data: bytes, *, sha256: str | None = None) -> ObjectStat:
         check_key(key)

@@ -263,3 +263,33 @@ def test_put_tree_needs_a_directory(tmp_path):
 def test_put_file_of_missing_path_names_it(tmp_path):
     with pytest.raises(ValueError, match="missing.bin"):
         LocalStorage(tmp_path / "s").put_file("a", Path(tmp_path / "missing.bin"))
+
+
+def test_large_files_go_to_s3_in_parts(s3_endpoint, tmp_path):
+    store = S3Storage(
+        bucket=f"t-{os.urandom(6).hex()}",
+        endpoint_url=s3_endpoint,
+        access_key_id="testing",
+        secret_access_key="testing",
+        multipart_threshold_bytes=5 << 20,  # S3's smallest part size
+    )
+    store.ensure_bucket()
+    data = os.urandom((5 << 20) * 2 + 1234)  # three parts
+    src = tmp_path / "big.bin"
+    src.write_bytes(data)
+    stat = store.put_file("scans/1/bundle.zip", src, sha256=sha(data))
+    assert stat.size_bytes == len(data) and stat.etag == sha(data)
+    head = store.client.head_object(Bucket=store.bucket, Key="scans/1/bundle.zip")
+    assert head["ETag"].strip('"').endswith("-3")  # really a 3-part upload
+    assert (
+        b"".join(store.open_range("scans/1/bundle.zip", 5 << 20, (5 << 20) + 10))
+        == data[5 << 20 : (5 << 20) + 10]
+    )
+    with pytest.raises(ChecksumMismatch):
+        store.put_file("scans/2/bundle.zip", src, sha256="1" * 64)
+    assert not store.exists("scans/2/bundle.zip")
+
+
+def test_multipart_threshold_below_s3_part_size_is_refused():
+    with pytest.raises(ValueError, match="multipart_threshold_bytes"):
+        S3Storage(bucket="bkt", client=object(), multipart_threshold_bytes=1 << 20)
