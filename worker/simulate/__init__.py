@@ -1,0 +1,30 @@
+"""Forward model of the scanner: synthetic tablets, frames per SCAN_BUNDLE.md, ground truth.
+
+See docs/simulator.md. ``simulate_scan`` writes a bundle plus ground truth;
+``render_frame`` renders one frame for the rig agent's simulated camera.
+"""
+
+from worker.simulate.noise import NOISE_PRESETS, NoiseModel, noise_model
+from worker.simulate.rig import FrameSpec, Rig, frame_radiance, render_frame
+from worker.simulate.scan import SimulationResult, simulate_scan
+from worker.simulate.tablet import FACE_POSES, FACES, Tablet, make_tablet
+from worker.simulate.view import View, flat_view, render_view
+
+__all__ = [
+    "FACES",
+    "FACE_POSES",
+    "NOISE_PRESETS",
+    "FrameSpec",
+    "NoiseModel",
+    "Rig",
+    "SimulationResult",
+    "Tablet",
+    "View",
+    "flat_view",
+    "frame_radiance",
+    "make_tablet",
+    "noise_model",
+    "render_frame",
+    "render_view",
+    "simulate_scan",
+]
