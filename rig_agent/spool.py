@@ -41,7 +41,7 @@ class SpoolError(RuntimeError):
 
 
 def utc_now() -> str:
-    return dt.datetime.now(dt.UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
+    return dt.datetime.now(dt.UTC).isoformat(timespec="microseconds").replace("+00:00", "Z")
 
 
 def encode_png(image: np.ndarray) -> bytes:
