@@ -56,6 +56,7 @@ class Settings:
     # simulated devices
     sim_seed: int = 0
     sim_noise: str = "default"
+    sim_mesh: str = ""  # a mesh file (PLY/OBJ/STL, mm) to scan instead of a synthetic tablet
 
     def __post_init__(self) -> None:
         checks = {

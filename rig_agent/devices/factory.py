@@ -85,6 +85,7 @@ def _open_simulated(settings: Settings, *, target: str, face: str) -> Devices:
         polar_deg=settings.polar_deg,
         seed=settings.sim_seed,
         noise=settings.sim_noise,
+        mesh=settings.sim_mesh or None,
         face=face
         if face in ("obverse", "reverse", "top", "bottom", "left", "right")
         else "obverse",

@@ -72,8 +72,9 @@ class SimulatedCamera(Camera):
 
 
 class SimulatorScene:
-    """Renderer on ``worker.simulate``: a synthetic tablet of ``seed`` (``face`` up) and the
-    white reference target (rendered by the simulator's own reference model).
+    """Renderer on ``worker.simulate``: a synthetic tablet of ``seed`` — or the triangle mesh
+    file ``mesh`` (mm) — with ``face`` toward the camera, and the white reference target
+    (rendered by the simulator's own reference model).
 
     Image size and sampling as the camera settings; ``noise`` is a preset of
     ``worker.simulate`` (``clean``, ``default``, ``hard``).
@@ -90,6 +91,7 @@ class SimulatorScene:
         noise: str = "default",
         supersample: int = 2,
         face: str = "obverse",
+        mesh: str | None = None,
     ) -> None:
         from worker.simulate.noise import noise_model
         from worker.simulate.rig import Rig
@@ -107,6 +109,7 @@ class SimulatorScene:
         self._geometry = (width, height, pixel_size_um, supersample)
         self._seed = seed
         self._face = face
+        self._mesh = mesh
         self._views: dict[str, Any] = {}
 
     def view(self, target: str) -> Any:
@@ -119,19 +122,23 @@ class SimulatorScene:
                     width, height, pixel_size_um, supersample, albedo=self.reflectance
                 )
             else:
-                from worker.simulate.tablet import FACE_POSES, make_tablet
-                from worker.simulate.view import render_view
-
-                pose = FACE_POSES.get(self._face, np.eye(3))
-                self._views[target] = render_view(
-                    make_tablet(self._seed),
-                    pose,
-                    width=width,
-                    height=height,
-                    pixel_size_um=pixel_size_um,
-                    supersample=supersample,
-                )
+                self._views[target] = self._object_view()
         return self._views[target]
+
+    def _object_view(self) -> Any:
+        from worker.simulate.tablet import FACE_POSES
+
+        width, height, pixel_size_um, supersample = self._geometry
+        pose = FACE_POSES.get(self._face, np.eye(3))
+        grid = {"width": width, "height": height, "pixel_size_um": pixel_size_um}
+        if self._mesh is not None:
+            from worker.simulate.meshview import load_mesh, render_mesh_view
+
+            return render_mesh_view(load_mesh(self._mesh), pose, supersample=supersample, **grid)
+        from worker.simulate.tablet import make_tablet
+        from worker.simulate.view import render_view
+
+        return render_view(make_tablet(self._seed), pose, supersample=supersample, **grid)
 
     def __call__(
         self,

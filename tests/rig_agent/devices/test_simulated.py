@@ -87,3 +87,24 @@ def test_capture_needs_a_pattern(rig):
     projector.current = None
     with pytest.raises(DeviceError, match="projector"):
         camera.capture()
+
+
+def test_a_given_mesh_is_scanned(tmp_path):
+    import trimesh
+
+    # A 10 × 8 × 2 mm box: in a 32 × 24 px field of 0.5 mm it covers 20 × 16 px in the middle.
+    path = tmp_path / "box.ply"
+    trimesh.creation.box(extents=(10.0, 8.0, 2.0)).export(path)
+    scene = SimulatorScene(
+        width=W, height=H, pixel_size_um=PIXEL_UM, polar_deg=40.0, noise="clean", mesh=str(path)
+    )
+    image = scene(
+        pattern=Pattern("white"),
+        azimuth_deg=0.0,
+        target="object",
+        exposure=1.0,
+        rng=np.random.default_rng(0),
+    ).astype(float)
+    # Clay (mean reflectance ≈ 0.34) against black velvet (0.03): the box is much brighter.
+    centre, corner = image[8:16, 10:22].mean(), image[:3, :3].mean()
+    assert centre > 3 * corner
