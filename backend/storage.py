@@ -531,3 +531,17 @@ def _iter_body(body: Any, key: str) -> Iterator[bytes]:
         raise StorageError(f"object storage read failed: {exc}", key=key) from exc
     finally:
         body.close()
+
+
+def storage_from_settings(settings: Any) -> Storage:
+    """The storage the settings name (``storage_backend``: local or s3); workers use it too."""
+    if settings.storage_backend == "s3":
+        secret = settings.s3_secret_access_key
+        return S3Storage(
+            bucket=settings.s3_bucket,
+            endpoint_url=settings.s3_endpoint_url,
+            access_key_id=settings.s3_access_key_id,
+            secret_access_key=secret.get_secret_value() if secret else None,
+            region=settings.s3_region,
+        )
+    return LocalStorage(settings.resolved_storage_dir)

@@ -26,7 +26,7 @@ from sqlalchemy.orm import Session
 from backend import crud
 from backend.api.deps import OptionalUser, SessionDep, SettingsDep
 from backend.errors import error_body, forbidden, not_found, unauthorized
-from backend.storage import LocalStorage, S3Storage, Storage, StorageError
+from backend.storage import Storage, StorageError, storage_from_settings
 from backend.tables import Model, Scan, Tablet, User
 
 CONTENT_TYPES = {
@@ -57,19 +57,6 @@ class StorageErrorRoute(APIRoute):
                 )
 
         return handle
-
-
-def storage_from_settings(settings: Any) -> Storage:
-    if settings.storage_backend == "s3":
-        secret = settings.s3_secret_access_key
-        return S3Storage(
-            bucket=settings.s3_bucket,
-            endpoint_url=settings.s3_endpoint_url,
-            access_key_id=settings.s3_access_key_id,
-            secret_access_key=secret.get_secret_value() if secret else None,
-            region=settings.s3_region,
-        )
-    return LocalStorage(settings.resolved_storage_dir)
 
 
 def get_storage(request: Request) -> Storage:

@@ -293,3 +293,26 @@ def test_large_files_go_to_s3_in_parts(s3_endpoint, tmp_path):
 def test_multipart_threshold_below_s3_part_size_is_refused():
     with pytest.raises(ValueError, match="multipart_threshold_bytes"):
         S3Storage(bucket="bkt", client=object(), multipart_threshold_bytes=1 << 20)
+
+
+def test_storage_from_settings(tmp_path, s3_endpoint):
+    from backend.settings import Settings
+    from backend.storage import storage_from_settings
+
+    local = storage_from_settings(Settings(_env_file=None, environment="test", data_dir=tmp_path))
+    assert isinstance(local, LocalStorage) and local.root == tmp_path / "storage"
+    s3 = storage_from_settings(
+        Settings(
+            _env_file=None,
+            environment="test",
+            data_dir=tmp_path,
+            storage_backend="s3",
+            s3_endpoint_url=s3_endpoint,
+            s3_bucket="from-settings",
+            s3_access_key_id="testing",
+            s3_secret_access_key="testing",
+        )
+    )
+    assert isinstance(s3, S3Storage) and s3.bucket == "from-settings"
+    s3.ensure_bucket()
+    assert s3.put_bytes("k/v", b"1").size_bytes == 1
