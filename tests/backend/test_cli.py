@@ -1,0 +1,97 @@
+"""The hammurabi command: exit 2 with one clear line on errors; the token secret on stdout."""
+
+from __future__ import annotations
+
+import pytest
+
+from backend import crud
+from backend.cli import main
+from backend.db import make_engine, make_sessionmaker, session_scope
+from backend.tables import Role, Tablet
+
+
+@pytest.fixture
+def env(monkeypatch, tmp_path):
+    for name in ("HAMMURABI_DATABASE_URL", "HAMMURABI_ENVIRONMENT", "HAMMURABI_SECRET_KEY"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("HAMMURABI_DATA_DIR", str(tmp_path / "var"))
+    monkeypatch.chdir(tmp_path)  # no stray .env file is read
+    return tmp_path / "var" / "hammurabi.db"
+
+
+def _session(db_path):
+    engine = make_engine(f"sqlite:///{db_path}")
+    return engine, make_sessionmaker(engine)
+
+
+def test_create_user_and_token(env, capsys):
+    assert main(["migrate"]) == 0
+    assert main(["create-user", "Ann@Example.org", "--role", "staff", "--institution", "BM",
+                 "--password", "long enough"]) == 0  # fmt: skip
+    capsys.readouterr()
+    assert main(["create-token", "ann@example.org", "--name", "rig 1"]) == 0
+    out, err = capsys.readouterr()
+    secret = out.strip()
+    assert secret.startswith("hmr_") and "shown only once" in err
+    engine, factory = _session(env)
+    with session_scope(factory) as session:
+        user = crud.user_for_token(session, secret=secret)
+        assert (user.email, user.role, user.institution.name) == (
+            "ann@example.org",
+            Role.staff,
+            "BM",
+        )
+        assert crud.authenticate(session, email="ann@example.org", password="long enough")
+    engine.dispose()
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (
+            ["create-user", "a@b.org", "--role", "staff", "--no-password"],
+            "--institution is required",
+        ),
+        (["create-user", "a@b.org", "--role", "reader", "--password", "short"], "at least 8"),
+        (["create-user", "a@b.org", "--role", "reader"], "give --password"),
+        (["create-token", "nobody@b.org", "--name", "x"], "no user nobody@b.org"),
+        (["import-catalogue", "missing.csv"], "missing.csv: no such file"),
+    ],
+)
+def test_errors_exit_2_with_a_clear_line(env, capsys, monkeypatch, argv, message):
+    monkeypatch.setattr("sys.stdin.isatty", lambda: False)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_duplicate_user_is_refused(env, capsys):
+    assert main(["create-user", "a@b.org", "--role", "reader", "--no-password"]) == 0
+    assert main(["create-user", "A@b.org", "--role", "reader", "--no-password"]) == 2
+    assert "already exists" in capsys.readouterr().err
+
+
+def test_production_without_secret_refuses(env, capsys, monkeypatch):
+    monkeypatch.setenv("HAMMURABI_ENVIRONMENT", "production")
+    assert main(["migrate"]) == 2
+    assert "HAMMURABI_SECRET_KEY" in capsys.readouterr().err
+
+
+def test_import_catalogue_command(env, capsys, tmp_path):
+    source = tmp_path / "cat.csv"
+    source.write_text("id_text,designation,height\nP000001,BM 1,4 cm\n,nothing,\n")
+    assert main(["import-catalogue", str(source), "--institution", "BM", "--public"]) == 0
+    err = capsys.readouterr().err
+    assert "1 inserted" in err and "1 skipped" in err and "no P-number" in err
+    engine, factory = _session(env)
+    with session_scope(factory) as session:
+        tablet = session.query(Tablet).one()
+        assert (tablet.is_public, tablet.institution.name, tablet.height_mm) == (True, "BM", 40.0)
+    engine.dispose()
+
+
+def test_unknown_command_is_a_usage_error(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["frobnicate"])
+    assert exc.value.code == 2
