@@ -167,7 +167,8 @@ def _fringe_set_problem(group: list[Frame]) -> str | None:
     if len(group) == 4 and not remaining and not extra:
         return None
     f = group[0]
-    listed = ", ".join(f"frames[{g.index}] ({g.phase_deg:g}°)" for g in group)
+    listed = ", ".join(f"frames[{g.index}] ({g.phase_deg:g}°)" for g in group[:8])
+    listed += ", ..." if len(group) > 8 else ""
     missing = ", ".join(f"{p:g}" for p in remaining) or "none"
     return (
         f"fringe set (target {f.target}, azimuth {f.azimuth_deg:g}°, polar {f.polar_deg:g}°, "

@@ -258,17 +258,27 @@ def _load(path: str | os.PathLike, limits: Limits, *, decode_all: bool):
     if container is None:
         return None, None, {}, problems
     try:
+        return (container, *_load_from(container, problems, limits, decode_all=decode_all))
+    except BaseException:
+        container.close()
+        raise
+
+
+def _load_from(container: Container, problems: list[Problem], limits: Limits, *, decode_all: bool):
+    """(manifest or None, infos, problems) of an open container; ``problems`` so far."""
+    try:
         # One byte over the cap is enough to know it is too large.
         data = container.read(container.manifest_path, limit=limits.max_manifest_bytes + 1)
     except ContainerError as exc:
         where = container.manifest_path
-        return container, None, {}, [*problems, Problem(where, str(exc))]
+        return None, {}, [*problems, Problem(where, str(exc))]
     value, parse_problems = parse_manifest_json(data, max_bytes=limits.max_manifest_bytes)
     if parse_problems:
-        return container, None, {}, [*problems, *parse_problems]
-    problems += check_manifest(value)
+        return None, {}, [*problems, *parse_problems]
+    field_problems = check_manifest(value)
+    problems += field_problems
     manifest = None
-    if not problems:
+    if not field_problems:
         manifest = build_manifest(value)
         problems += check_frames(manifest.frames)
     camera = value.get("camera") if isinstance(value, dict) else None
@@ -277,7 +287,7 @@ def _load(path: str | os.PathLike, limits: Limits, *, decode_all: bool):
         _check_images(container, value, limits, decode_all=decode_all) if pixels_ok else ({}, [])
     )
     problems += image_problems
-    return container, manifest, infos, problems
+    return manifest, infos, problems
 
 
 def _camera_pixels_ok(camera: Any, limits: Limits, problems: list[Problem]) -> bool:

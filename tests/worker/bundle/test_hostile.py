@@ -332,3 +332,13 @@ def test_all_problems_are_reported_together(written_bundle) -> None:
         "frames[1].azimuth_deg",
         "object/p90.png",
     }
+
+
+def test_zip_entry_problems_do_not_hide_frame_problems(written_bundle, tmp_path) -> None:
+    entries = dict(_entries(written_bundle()))
+    manifest = json.loads(entries["manifest.json"])
+    manifest["frames"][7]["phase_deg"] = 45  # breaks the object fringe set
+    entries["manifest.json"] = json.dumps(manifest).encode()
+    path = _zip(tmp_path / "both.zip", [*entries.items(), ("../evil", b"")])
+    problems = validate_bundle(path)
+    assert [p.where for p in problems][:2] == ["archive entry '../evil'", "frames[4]"]
