@@ -92,6 +92,10 @@ def fuse_default(
     wx = _edge_weight(w_pix[:, 1:], w_pix[:, :-1])
     wy = _edge_weight(w_pix[1:, :], w_pix[:-1, :])
     tx, ty = edge_targets_um(gx, gy, pixel_size_um=s)
+    # Mask pixels without a normal are bridged by a faint membrane (flat target) so that the
+    # ones without a fringe height either follow their neighbours instead of floating free.
+    wx, tx = _bridge(wx, tx, m_c[:, 1:] & m_c[:, :-1])
+    wy, ty = _bridge(wy, ty, m_c[1:, :] & m_c[:-1, :])
 
     f_c = f[crop]
     has_f = m_c & np.isfinite(f_c) & np.isfinite(sig_f[crop])
@@ -127,6 +131,13 @@ def _zero_mean_where_no_data(h, mask, has_data):
     means = ndimage.mean(h, labels, index=index)
     offset = np.concatenate([[0.0], np.where(strong, 0.0, means)]).astype(np.float32)
     return h - offset[labels]
+
+
+def _bridge(w, t, both_in_mask):
+    active = w[w > 0]
+    faint = np.float32(1e-3 * (float(np.median(active)) if active.size else 1.0))
+    gap = both_in_mask & ~(w > 0)
+    return np.where(gap, faint, w), np.where(gap, np.float32(0), t)
 
 
 def _edge_weight(wa, wb):

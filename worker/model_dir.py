@@ -1,0 +1,148 @@
+"""Writer of the model directory (SCAN_BUNDLE.md, "Reconstruction output").
+
+Files: height.npy, normals.npy, albedo.png, mask.png, mesh.ply, model.glb, report.json, plus
+normals.png (object-space normals, RGB = (n + 1)/2, for the viewer) and quality/*.npy.
+Everything is written into a temporary directory next to OUTDIR, each file fsynced, and the
+directory renamed into place: OUTDIR holds either the whole model or what it held before.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import uuid
+from collections.abc import Mapping
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from worker.recon.glb import glb_bytes
+from worker.recon.mesh import grid_mesh, ply_bytes
+
+__all__ = ["ModelArrays", "write_model_dir"]
+
+
+class ModelArrays:
+    """What a model directory holds, as arrays (shapes in the SCAN_BUNDLE.md table)."""
+
+    def __init__(
+        self,
+        *,
+        height_um: np.ndarray,
+        normals: np.ndarray,
+        albedo_srgb8: np.ndarray,
+        mask: np.ndarray,
+        pixel_size_um: float,
+        quality: Mapping[str, np.ndarray],
+    ):
+        self.height_um = height_um
+        self.normals = normals
+        self.albedo_srgb8 = albedo_srgb8
+        self.mask = mask
+        self.pixel_size_um = pixel_size_um
+        self.quality = dict(quality)
+
+
+def _write(path: Path, data: bytes) -> None:
+    with open(path, "xb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+def _npy(path: Path, array: np.ndarray) -> None:
+    with open(path, "xb") as fh:
+        np.save(fh, array)
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+def _png(path: Path, image: np.ndarray) -> None:
+    img = image[..., ::-1] if image.ndim == 3 else image
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
+    if not ok:
+        raise OSError(f"{path.name}: PNG encoding failed")
+    _write(path, buf.tobytes())
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_model_dir(
+    out_dir: str | os.PathLike,
+    model: ModelArrays,
+    report: dict,
+    *,
+    max_glb_triangles: int = 200_000,
+) -> dict:
+    """Write the model directory atomically; returns the report (with mesh figures added).
+
+    An existing OUTDIR is replaced only once the new one is complete.
+    """
+    out = Path(out_dir)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp-{uuid.uuid4().hex}")
+    tmp.mkdir()
+    try:
+        report = _fill(tmp, model, report, max_glb_triangles)
+        _fsync_dir(tmp)
+        if out.exists():
+            trash = out.with_name(f".{out.name}.old-{uuid.uuid4().hex}")
+            os.rename(out, trash)
+            os.rename(tmp, out)
+            shutil.rmtree(trash, ignore_errors=True)
+        else:
+            os.rename(tmp, out)
+        _fsync_dir(out.parent)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return report
+
+
+def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int) -> dict:
+    m = np.asarray(model.mask, bool)
+    h = np.where(m, model.height_um, np.nan).astype(np.float32)
+    n = np.where(m[..., None], model.normals, np.nan).astype(np.float32)
+    ok = m & np.isfinite(h)
+    _npy(tmp / "height.npy", h)
+    _npy(tmp / "normals.npy", n)
+    albedo = np.asarray(model.albedo_srgb8, np.uint8)
+    _png(tmp / "albedo.png", albedo)
+    _png(tmp / "mask.png", np.where(m, 255, 0).astype(np.uint8))
+    rgb = np.where(np.isfinite(n), np.clip(np.rint((n + 1.0) * 127.5), 0, 255), 0).astype(np.uint8)
+    _png(tmp / "normals.png", rgb)
+
+    mesh = grid_mesh(h, ok, pixel_size_um=model.pixel_size_um)
+    vn = n[mesh.rows, mesh.cols]
+    vn = np.where(np.isfinite(vn), vn, np.array([0, 0, -1], np.float32))
+    _write(
+        tmp / "mesh.ply",
+        ply_bytes(
+            mesh.vertices_mm, mesh.faces, normals=vn, colors_rgb8=albedo[mesh.rows, mesh.cols]
+        ),
+    )
+    glb, info = glb_bytes(
+        h, ok, n, albedo, pixel_size_um=model.pixel_size_um, max_triangles=max_glb_triangles
+    )
+    _write(tmp / "model.glb", glb)
+    (tmp / "quality").mkdir()
+    for name, arr in model.quality.items():
+        _npy(tmp / "quality" / f"{name}.npy", np.asarray(arr))
+    report = dict(report)
+    report["mesh"] = {
+        "ply_vertices": len(mesh.vertices_mm),
+        "ply_triangles": len(mesh.faces),
+        "glb_vertices": info["vertices"],
+        "glb_triangles": info["triangles"],
+        "glb_grid_step_px": info["step"],
+    }
+    _write(tmp / "report.json", json.dumps(report, indent=1, allow_nan=False).encode())
+    return report

@@ -1,0 +1,264 @@
+"""Bundle → reconstruction → model directory (stages 1–8 of the reconstruction issue).
+
+`reconstruct_bundle(bundle_path, out_dir, *, fusion="default", progress=None) -> report`.
+The measurement stages (photometric stereo, colour, fringe heights) are in
+`worker.measure`; this module chooses the surface, builds the mask, fuses, and writes the
+model directory atomically. A bundle that cannot be reconstructed raises
+`ReconstructionError` (the CLI exits 2) and leaves OUTDIR untouched.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+
+import numpy as np
+from scipy import ndimage
+
+from worker.bundle import BundleError, open_bundle
+from worker.measure import Measurements, ReconstructionError, measure_bundle
+from worker.model_dir import ModelArrays, write_model_dir
+from worker.recon.color import linear_to_srgb8
+from worker.recon.fusion import fuse_default
+from worker.recon.fusion_paper import fuse_paper
+from worker.recon.height import fill_holes
+from worker.recon.integrate import integrate_normals
+from worker.recon.mask import tablet_mask
+from worker.recon.quality import fringe_sigma_um, normal_sigma_rad
+
+__all__ = ["FUSIONS", "SURFACES", "ReconstructionError", "reconstruct_bundle", "surface_of"]
+
+FUSIONS = ("default", "paper")
+SURFACES = ("fused", "fringe", "normals")
+Progress = Callable[[str, float], None]
+
+
+def _noop(stage: str, fraction: float) -> None:
+    return None
+
+
+def reconstruct_bundle(
+    bundle_path: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    *,
+    fusion: str = "default",
+    surface: str = "fused",
+    progress: Progress | None = None,
+) -> dict:
+    """Reconstruct a scan bundle into the model directory `out_dir`; returns the report.
+
+    fusion: "default" (weighted least squares) or "paper" (Kumar et al. 2003 §3.3).
+    surface: "fused" (normal use), or a baseline: "fringe" (5×5 median of the fringe
+    heights) or "normals" (normals integrated alone), for the benchmark.
+    progress(stage, fraction): fraction of the whole job done, 0…1.
+    """
+    if fusion not in FUSIONS:
+        raise ValueError(f"fusion must be one of {FUSIONS}, got {fusion!r}")
+    if surface not in SURFACES:
+        raise ValueError(f"surface must be one of {SURFACES}, got {surface!r}")
+    report_progress = progress or _noop
+    t_start = time.perf_counter()
+    try:
+        with open_bundle(bundle_path) as bundle:
+            meas = measure_bundle(bundle, progress=report_progress)
+    except BundleError as exc:
+        raise ReconstructionError(str(exc)) from None
+    except FileNotFoundError as exc:
+        raise ReconstructionError(f"bundle: {exc}") from None
+
+    timings = dict(meas.timings)
+    t0 = time.perf_counter()
+    report_progress("mask", 0.80)
+    mask = _mask(meas)
+    if mask.sum() < 16:
+        raise ReconstructionError(
+            "mask: no tablet found (no pixel is both bright enough and measured); "
+            "is the tablet in the frame and lit?"
+        )
+    timings["mask"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    report_progress("fusion", 0.84)
+    height, normals, used_surface = surface_of(meas, mask, fusion=fusion, surface=surface)
+    timings["fusion"] = time.perf_counter() - t0
+    mask &= np.isfinite(height)
+
+    quality = _quality_maps(meas, height, mask)
+    report = _report(meas, mask, quality, fusion=fusion, surface=used_surface)
+    rgb = (
+        meas.rgb_linear if meas.rgb_linear is not None else np.repeat(meas.albedo[..., None], 3, 2)
+    )
+    albedo8 = linear_to_srgb8(np.where(mask[..., None], rgb, 0))
+
+    t0 = time.perf_counter()
+    report_progress("write", 0.90)
+    report["timings_s"] = timings
+    model = ModelArrays(
+        height_um=height,
+        normals=normals,
+        albedo_srgb8=albedo8,
+        mask=mask,
+        pixel_size_um=meas.pixel_size_um,
+        quality=quality,
+    )
+    timings["write"] = 0.0
+    timings["total"] = 0.0
+    report = write_model_dir(out_dir, model, report)
+    timings["write"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_start
+    report["timings_s"] = timings
+    _rewrite_report(out_dir, report)
+    report_progress("done", 1.0)
+    return report
+
+
+def _rewrite_report(out_dir, report):
+    """Put the final timings (write, total) into report.json, atomically."""
+    import json
+
+    path = os.path.join(out_dir, "report.json")
+    tmp = path + ".tmp"
+    with open(tmp, "w", encoding="utf-8") as fh:
+        json.dump(report, fh, indent=1, allow_nan=False)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _mask(meas: Measurements) -> np.ndarray:
+    has_n = np.all(np.isfinite(meas.normals), axis=-1) if meas.normals is not None else None
+    has_h = np.isfinite(meas.fringe_height_um) if meas.fringe_height_um is not None else None
+    brightness = meas.albedo
+    return tablet_mask(
+        brightness,
+        has_normal=has_n,
+        has_height=has_h,
+        modulation=meas.modulation,
+        height_um=meas.fringe_height_um,
+    )
+
+
+def surface_of(
+    meas: Measurements, mask: np.ndarray, *, fusion: str = "default", surface: str = "fused"
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """Heights (H, W) µm and normals (H, W, 3) of the chosen surface on the mask, and its name.
+
+    Uses what the bundle has: normals and fringe heights → fusion; normals only →
+    integration; fringe heights only → the heights, with normals from their gradient.
+    """
+    s = meas.pixel_size_um
+    has_n = meas.normals is not None
+    has_f = meas.fringe_height_um is not None and np.isfinite(meas.fringe_height_um[mask]).any()
+    if surface == "fringe" or (has_f and not has_n):
+        h = _fringe_surface(meas.fringe_height_um, mask)
+        return h, _normals_from_height(h, mask, s), "fringe"
+    if surface == "normals" or not has_f:
+        h = integrate_normals(meas.normals, pixel_size_um=s, mask=mask)
+        if has_f:
+            # Normals fix the shape only; the absolute level is the fringes' (median offset).
+            h += np.float32(np.nanmedian(meas.fringe_height_um[mask] - h[mask]))
+        return h, _unit_normals(meas.normals, h, mask, s), "normals"
+    sig_n = normal_sigma_rad(meas.residual, meas.lights_used, polar_deg=meas.photometric_polar_deg)
+    sig_f, sigma_f = fringe_sigma_um(meas.fringe_height_um, mask, azimuths_used=meas.azimuths_used)
+    if fusion == "paper":
+        sig_n_typ = float(np.median(sig_n[mask & np.isfinite(sig_n)]))
+        h, _ = fuse_paper(
+            meas.normals,
+            meas.fringe_height_um,
+            pixel_size_um=s,
+            mask=mask,
+            normal_sigma_rad=sig_n_typ,
+            height_sigma_um=sigma_f,
+        )
+        return h, _unit_normals(meas.normals, h, mask, s), "paper"
+    h = fuse_default(
+        meas.normals,
+        meas.fringe_height_um,
+        pixel_size_um=s,
+        mask=mask,
+        normal_sigma_rad=sig_n,
+        height_sigma_um=sig_f,
+    )
+    return h, _unit_normals(meas.normals, h, mask, s), "default"
+
+
+def _fringe_surface(height_um, mask):
+    h = np.where(mask, height_um, np.nan).astype(np.float32)
+    finite = np.isfinite(h)
+    if not finite.any():
+        raise ReconstructionError("fringe frames: no pixel of the tablet has a fringe height")
+    fill = float(np.median(h[finite]))
+    med = ndimage.median_filter(np.where(finite, h, fill), size=5, mode="nearest")
+    med = np.where(finite, med, np.nan)
+    return np.where(mask, fill_holes(med, mask), np.nan).astype(np.float32)
+
+
+def _normals_from_height(h, mask, s):
+    filled = np.where(np.isfinite(h), h, np.nanmedian(h))
+    gy, gx = np.gradient(filled.astype(np.float64), s)
+    n = np.stack([-gx, -gy, -np.ones_like(gx)], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return np.where(mask[..., None], n, np.nan).astype(np.float32)
+
+
+def _unit_normals(normals, h, mask, s):
+    """The photometric normals where they exist, else the normals of the surface h."""
+    n = np.asarray(normals, np.float32)
+    ok = np.all(np.isfinite(n), axis=-1)
+    if ok[mask].all():
+        return np.where(mask[..., None], n, np.nan).astype(np.float32)
+    fallback = _normals_from_height(h, mask, s)
+    return np.where(ok[..., None], n, fallback).astype(np.float32)
+
+
+def _quality_maps(meas: Measurements, height, mask) -> dict[str, np.ndarray]:
+    out: dict[str, np.ndarray] = {}
+    if meas.residual is not None:
+        out["photometric_residual"] = np.where(mask, meas.residual, np.nan).astype(np.float32)
+        out["lights_used"] = np.where(mask, meas.lights_used, 0).astype(np.int16)
+    if meas.modulation is not None:
+        out["fringe_modulation"] = np.where(mask, meas.modulation, np.nan).astype(np.float32)
+    if meas.fringe_height_um is not None:
+        out["fringe_disagreement_um"] = np.where(
+            mask, meas.fringe_height_um - height, np.nan
+        ).astype(np.float32)
+    return out
+
+
+def _median(a, mask):
+    v = a[mask & np.isfinite(a)]
+    return float(np.median(v)) if v.size else None
+
+
+def _report(meas: Measurements, mask, quality, *, fusion, surface) -> dict:
+    q = {
+        "tablet_pixels": int(mask.sum()),
+        "tablet_fraction_of_image": float(mask.mean()),
+        "coverage": float(np.isfinite(meas.normals).all(-1)[mask].mean())
+        if meas.normals is not None
+        else float(np.isfinite(meas.fringe_height_um)[mask].mean()),
+        "fringe_coverage": float(np.isfinite(meas.fringe_height_um)[mask].mean())
+        if meas.fringe_height_um is not None
+        else 0.0,
+    }
+    if "photometric_residual" in quality:
+        q["median_residual"] = _median(quality["photometric_residual"], mask)
+        q["median_lights_used"] = _median(quality["lights_used"].astype(np.float32), mask)
+    if "fringe_modulation" in quality:
+        q["median_modulation"] = _median(quality["fringe_modulation"], mask)
+    if "fringe_disagreement_um" in quality:
+        d = quality["fringe_disagreement_um"]
+        q["median_abs_disagreement_um"] = _median(np.abs(d), mask)
+    return {
+        "format": "digital-hammurabi-model",
+        "version": 1,
+        "scan": meas.scan_info,
+        "pixel_size_um": meas.pixel_size_um,
+        "image_size": {"width": int(mask.shape[1]), "height": int(mask.shape[0])},
+        "fusion": fusion,
+        "surface": surface,
+        "used": meas.used,
+        "warnings": list(meas.warnings),
+        "quality": q,
+    }

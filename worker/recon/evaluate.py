@@ -1,0 +1,75 @@
+"""Accuracy of a reconstruction against ground truth (the figures of the reconstruction issue).
+
+Evaluated pixels: tablet pixels (ground-truth mask) at least `edge_px` pixels from the mask
+edge, with a true slope under `max_slope_deg`. Heights are compared after removing the median
+offset (the reference plane of a scan is only known to the fringes' accuracy, and baselines
+from normals alone have none). Wedge depth: mean rim height minus bottom height, both read
+bilinearly at the points of gt/wedges.json from the reconstructed and the true height maps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["evaluate"]
+
+
+def _bilinear(h: np.ndarray, row: float, col: float) -> float:
+    return float(ndimage.map_coordinates(h, [[row], [col]], order=1, mode="nearest")[0])
+
+
+def wedge_depth_um(height_um: np.ndarray, wedge: dict) -> float:
+    """Mean rim height − bottom height (µm) of one wedge record of gt/wedges.json."""
+    rim = [_bilinear(height_um, p["row"], p["col"]) for p in wedge["rim"]]
+    b = wedge["bottom"]
+    return float(np.mean(rim) - _bilinear(height_um, b["row"], b["col"]))
+
+
+def evaluate(
+    height_um: np.ndarray,
+    normals: np.ndarray,
+    mask: np.ndarray,
+    *,
+    gt_height_um: np.ndarray,
+    gt_normals: np.ndarray,
+    gt_mask: np.ndarray,
+    wedges: Sequence[dict] = (),
+    edge_px: int = 4,
+    max_slope_deg: float = 60.0,
+) -> dict:
+    """Figures: coverage, height MAE/RMS (µm, median offset removed), median normal error (°),
+    wedge depth MAE (µm), and the number of evaluated pixels and wedges."""
+    gm = np.asarray(gt_mask, bool)
+    m = np.asarray(mask, bool)
+    coverage = float((m & gm & np.isfinite(height_um)).sum() / max(gm.sum(), 1))
+    inner = ndimage.binary_erosion(gm, structure=np.ones((3, 3), bool), iterations=edge_px)
+    nz = np.abs(np.asarray(gt_normals)[..., 2])
+    inner &= nz > np.cos(np.radians(max_slope_deg))
+    sel = inner & m & np.isfinite(height_um)
+    err = (height_um - gt_height_um)[sel]
+    err = err - np.median(err) if err.size else err
+    n = np.asarray(normals, np.float64)[sel]
+    g = np.asarray(gt_normals, np.float64)[sel]
+    cos = np.clip(np.sum(n * g, axis=-1), -1, 1)
+    ang = np.degrees(np.arccos(cos))
+    ang = ang[np.isfinite(ang)]
+    h_fill = np.where(np.isfinite(height_um), height_um, np.nanmedian(height_um))
+    depth_err = []
+    for w in wedges:
+        b = w["bottom"]
+        r, c = int(round(b["row"])), int(round(b["col"]))
+        if not (0 <= r < gm.shape[0] and 0 <= c < gm.shape[1]) or not inner[r, c]:
+            continue
+        depth_err.append(abs(wedge_depth_um(h_fill, w) - wedge_depth_um(gt_height_um, w)))
+    return {
+        "coverage": coverage,
+        "pixels": int(sel.sum()),
+        "height_mae_um": float(np.mean(np.abs(err))) if err.size else float("nan"),
+        "height_rms_um": float(np.sqrt(np.mean(err**2))) if err.size else float("nan"),
+        "normal_median_deg": float(np.median(ang)) if ang.size else float("nan"),
+        "wedges": len(depth_err),
+        "wedge_depth_mae_um": float(np.mean(depth_err)) if depth_err else float("nan"),
+    }

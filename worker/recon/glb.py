@@ -1,0 +1,214 @@
+"""model.glb for the browser: a decimated grid mesh with full-resolution textures.
+
+- Geometry: `mesh.grid_mesh(..., step)` with the step chosen so that the mesh has at most
+  `max_triangles` triangles; the same millimetre coordinates as mesh.ply (SCAN_BUNDLE.md frame).
+- TEXCOORD_0 is the image grid, u = (c + 0.5)/W, v = (r + 0.5)/H (docs/architecture.md), so any
+  image-grid texture maps onto the mesh.
+- baseColorTexture: the sRGB albedo (H, W).
+- normalTexture: the full-resolution normals in glTF tangent space relative to the DECIMATED
+  mesh: per pixel, N is the mesh's interpolated vertex normal, T the image +x (+u) direction
+  made orthogonal to N, and B = cross(N, T) (TANGENT.w = +1, the formula of the glTF 2.0
+  spec), which points toward −v (image up), the spec's +Y of a normal texture. The texel is
+  (n·T, n·B, n·N) mapped to (x + 1)/2. The TANGENT attribute is written so that viewers do not
+  have to guess (three.js uses it as is).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pygltflib
+from scipy import ndimage
+
+from worker.recon.mesh import grid_mesh, vertex_normals
+
+__all__ = ["decimation_step", "glb_bytes", "tangent_space_normals"]
+
+
+def decimation_step(shape: tuple[int, int], max_triangles: int) -> int:
+    """Smallest grid step whose full grid has at most `max_triangles` triangles."""
+    rows, cols = shape
+    step = 1
+    while 2 * (-(-(rows - 1) // step)) * (-(-(cols - 1) // step)) > max_triangles:
+        step += 1
+    return step
+
+
+def _frame(normal):
+    """Unit T (image +x made orthogonal to N) and B = N × T for (..., 3) normals N."""
+    x = np.zeros_like(normal)
+    x[..., 0] = 1.0
+    t = x - np.sum(x * normal, axis=-1, keepdims=True) * normal
+    t /= np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), 1e-12)
+    b = np.cross(normal, t)
+    return t, b
+
+
+def tangent_space_normals(
+    normals: np.ndarray, mesh_normal_grid: np.ndarray, rows: np.ndarray, cols: np.ndarray
+) -> np.ndarray:
+    """Full-resolution normals expressed in the decimated mesh's tangent frames.
+
+    normals: (H, W, 3) unit object-space normals (NaN allowed → flat (0, 0, 1)).
+    mesh_normal_grid: (len(rows), len(cols), 3) vertex normals of the decimated grid at the
+    sample pixels rows × cols (increasing). Returns (H, W, 3) float32 tangent-space normals.
+    """
+    h, w = normals.shape[:2]
+    ri = np.interp(np.arange(h), rows, np.arange(len(rows)))
+    ci = np.interp(np.arange(w), cols, np.arange(len(cols)))
+    coords = np.meshgrid(ri, ci, indexing="ij")
+    mesh_n = np.stack(
+        [ndimage.map_coordinates(mesh_normal_grid[..., k], coords, order=1) for k in range(3)],
+        axis=-1,
+    )
+    mesh_n /= np.maximum(np.linalg.norm(mesh_n, axis=-1, keepdims=True), 1e-12)
+    t, b = _frame(mesh_n)
+    n = np.asarray(normals, np.float64)
+    ok = np.all(np.isfinite(n), axis=-1)
+    n = np.where(ok[..., None], n, mesh_n)
+    out = np.stack([np.sum(n * t, -1), np.sum(n * b, -1), np.sum(n * mesh_n, -1)], axis=-1).astype(
+        np.float32
+    )
+    return out
+
+
+def _png(rgb8: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(rgb8[..., ::-1]))
+    if not ok:
+        raise ValueError("texture could not be encoded as PNG")
+    return buf.tobytes()
+
+
+def glb_bytes(
+    height_um: np.ndarray,
+    mask: np.ndarray,
+    normals: np.ndarray,
+    albedo_srgb8: np.ndarray,
+    *,
+    pixel_size_um: float,
+    max_triangles: int = 200_000,
+) -> tuple[bytes, dict]:
+    """Encode model.glb; returns (bytes, info) with info = {step, vertices, triangles}.
+
+    height_um (H, W) µm, mask (H, W) bool, normals (H, W, 3), albedo_srgb8 (H, W, 3) uint8.
+    """
+    h, w = np.shape(height_um)
+    step = decimation_step((h, w), max_triangles)
+    mesh = grid_mesh(height_um, mask, pixel_size_um=pixel_size_um, step=step)
+    if len(mesh.faces) == 0:
+        raise ValueError("mask: no triangle can be made (fewer than 3 adjacent pixels)")
+    vn = vertex_normals(mesh.vertices_mm, mesh.faces)
+    rs = np.unique(np.append(np.arange(0, h, step), h - 1))
+    cs = np.unique(np.append(np.arange(0, w, step), w - 1))
+    grid_n = np.zeros((len(rs), len(cs), 3), np.float32)
+    grid_n[..., 2] = -1.0
+    grid_n[np.searchsorted(rs, mesh.rows), np.searchsorted(cs, mesh.cols)] = vn
+    tangent_n = tangent_space_normals(normals, grid_n, rs, cs)
+    normal_tex = np.clip(np.rint((tangent_n + 1.0) * 127.5), 0, 255).astype(np.uint8)
+    t, _ = _frame(vn.astype(np.float64))
+    tangents = np.concatenate([t, np.ones((len(vn), 1))], axis=1).astype(np.float32)
+    uv = np.stack([(mesh.cols + 0.5) / w, (mesh.rows + 0.5) / h], axis=1).astype(np.float32)
+
+    blobs = [
+        mesh.vertices_mm.astype(np.float32).tobytes(),
+        vn.tobytes(),
+        tangents.tobytes(),
+        uv.tobytes(),
+        mesh.faces.astype(np.uint32).tobytes(),
+        _png(np.asarray(albedo_srgb8, np.uint8)),
+        _png(normal_tex),
+    ]
+    offsets, data = [], b""
+    for blob in blobs:
+        offsets.append(len(data))
+        data += blob + b"\0" * (-len(blob) % 4)
+    views = [
+        pygltflib.BufferView(
+            buffer=0,
+            byteOffset=offsets[i],
+            byteLength=len(blobs[i]),
+            target=(
+                pygltflib.ARRAY_BUFFER
+                if i < 4
+                else (pygltflib.ELEMENT_ARRAY_BUFFER if i == 4 else None)
+            ),
+        )
+        for i in range(len(blobs))
+    ]
+    nv = len(mesh.vertices_mm)
+    v = mesh.vertices_mm
+    accessors = [
+        pygltflib.Accessor(
+            bufferView=0,
+            componentType=pygltflib.FLOAT,
+            count=nv,
+            type=pygltflib.VEC3,
+            min=[float(x) for x in v.min(axis=0)],
+            max=[float(x) for x in v.max(axis=0)],
+        ),
+        pygltflib.Accessor(
+            bufferView=1, componentType=pygltflib.FLOAT, count=nv, type=pygltflib.VEC3
+        ),
+        pygltflib.Accessor(
+            bufferView=2, componentType=pygltflib.FLOAT, count=nv, type=pygltflib.VEC4
+        ),
+        pygltflib.Accessor(
+            bufferView=3, componentType=pygltflib.FLOAT, count=nv, type=pygltflib.VEC2
+        ),
+        pygltflib.Accessor(
+            bufferView=4,
+            componentType=pygltflib.UNSIGNED_INT,
+            count=int(mesh.faces.size),
+            type=pygltflib.SCALAR,
+        ),
+    ]
+    gltf = pygltflib.GLTF2(
+        asset=pygltflib.Asset(version="2.0", generator="Digital Hammurabi worker"),
+        scene=0,
+        scenes=[pygltflib.Scene(nodes=[0])],
+        nodes=[pygltflib.Node(mesh=0, name="tablet")],
+        meshes=[
+            pygltflib.Mesh(
+                primitives=[
+                    pygltflib.Primitive(
+                        attributes=pygltflib.Attributes(
+                            POSITION=0, NORMAL=1, TANGENT=2, TEXCOORD_0=3
+                        ),
+                        indices=4,
+                        material=0,
+                    )
+                ]
+            )
+        ],
+        materials=[
+            pygltflib.Material(
+                name="clay",
+                pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
+                    baseColorTexture=pygltflib.TextureInfo(index=0),
+                    metallicFactor=0.0,
+                    roughnessFactor=1.0,
+                ),
+                normalTexture=pygltflib.NormalMaterialTexture(index=1),
+                doubleSided=False,
+            )
+        ],
+        samplers=[
+            pygltflib.Sampler(
+                magFilter=pygltflib.LINEAR,
+                minFilter=pygltflib.LINEAR_MIPMAP_LINEAR,
+                wrapS=pygltflib.CLAMP_TO_EDGE,
+                wrapT=pygltflib.CLAMP_TO_EDGE,
+            )
+        ],
+        images=[
+            pygltflib.Image(bufferView=5, mimeType="image/png", name="albedo"),
+            pygltflib.Image(bufferView=6, mimeType="image/png", name="normals"),
+        ],
+        textures=[pygltflib.Texture(sampler=0, source=0), pygltflib.Texture(sampler=0, source=1)],
+        buffers=[pygltflib.Buffer(byteLength=len(data))],
+        bufferViews=views,
+        accessors=accessors,
+    )
+    gltf.set_binary_blob(data)
+    glb = b"".join(gltf.save_to_bytes())
+    return glb, {"step": step, "vertices": nv, "triangles": len(mesh.faces)}

@@ -1,0 +1,119 @@
+"""The tablet mask: which pixels show the tablet and carry a reliable measurement.
+
+Behind the tablet lies a dark, low-albedo support (black velvet, a V-block); clay reflects
+10–60 %. The mask is built from evidence that every kind of bundle has:
+
+1. brightness: albedo (photometric or colour) or, for fringe-only bundles, the fringe
+   amplitude; split by Otsu's threshold on log brightness (the two populations, support and
+   clay, differ by a factor, not an offset), never below `min_albedo`;
+2. reliability: pixels with neither a normal nor a fringe height are dropped; pixels whose
+   fringe modulation is far below the tablet's typical value are dropped where they also
+   have no normal;
+3. height (optional): the support lies below the tablet; pixels much lower than the
+   tablet's low percentile are dropped (a V-block or a table seen around the tablet);
+4. morphology: opening (removes specks and thin bridges to the support), the largest
+   connected component plus any component at least `min_part_fraction` of it, holes
+   filled (wedge floors in cast shadow are tablet too), and one pixel eroded off the rim
+   where pixels mix tablet and support.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["otsu_threshold", "tablet_mask"]
+
+
+def otsu_threshold(values: np.ndarray, *, bins: int = 256) -> float:
+    """Otsu's threshold (1979) of a 1-D sample: maximises the between-class variance."""
+    v = np.asarray(values, np.float64).ravel()
+    v = v[np.isfinite(v)]
+    if v.size < 2 or np.ptp(v) == 0:
+        raise ValueError("values must hold at least two distinct finite numbers")
+    hist, edges = np.histogram(v, bins=bins)
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    w0 = np.cumsum(hist)
+    w1 = w0[-1] - w0
+    m0 = np.cumsum(hist * centres)
+    mu0 = m0 / np.maximum(w0, 1)
+    mu1 = (m0[-1] - m0) / np.maximum(w1, 1)
+    between = w0 * w1 * (mu0 - mu1) ** 2
+    return float(edges[1:][np.argmax(between[:-1])])
+
+
+def tablet_mask(
+    brightness: np.ndarray,
+    *,
+    has_normal: np.ndarray | None = None,
+    has_height: np.ndarray | None = None,
+    modulation: np.ndarray | None = None,
+    height_um: np.ndarray | None = None,
+    min_albedo: float = 0.06,
+    min_part_fraction: float = 0.2,
+    opening_px: int = 2,
+) -> np.ndarray:
+    """Boolean (H, W) mask of the tablet.
+
+    brightness: (H, W) albedo relative to white (or any brightness proportional to it), NaN
+    where unknown. has_normal, has_height: (H, W) bool, where a normal / fringe height exists.
+    modulation: (H, W) fringe modulation B/A (NaN allowed). height_um: (H, W) µm (NaN allowed).
+    """
+    b = np.asarray(brightness, np.float32)
+    if b.ndim != 2:
+        raise ValueError(f"brightness must be (H, W), got {b.shape}")
+    shape = b.shape
+    for name, arr in (
+        ("has_normal", has_normal),
+        ("has_height", has_height),
+        ("modulation", modulation),
+        ("height_um", height_um),
+    ):
+        if arr is not None and np.shape(arr) != shape:
+            raise ValueError(f"{name} shape {np.shape(arr)} does not match brightness {shape}")
+    finite = np.isfinite(b) & (b > 0)
+    if finite.sum() < 16:
+        return np.zeros(shape, bool)
+    logb = np.log(b[finite])
+    try:
+        t = float(np.exp(otsu_threshold(logb)))
+    except ValueError:
+        t = 0.0
+    fg = finite & (b > max(t, min_albedo))
+
+    measured = np.zeros(shape, bool)
+    if has_normal is not None:
+        measured |= np.asarray(has_normal, bool)
+    if has_height is not None:
+        measured |= np.asarray(has_height, bool)
+    if has_normal is None and has_height is None:
+        measured[:] = True
+    fg &= measured
+    if modulation is not None and fg.any():
+        m = np.asarray(modulation, np.float32)
+        typical = np.nanmedian(np.where(fg, m, np.nan))
+        if np.isfinite(typical):
+            weak = ~(m > 0.2 * typical)
+            if has_normal is not None:
+                weak &= ~np.asarray(has_normal, bool)
+            fg &= ~weak
+    if height_um is not None and fg.any():
+        h = np.asarray(height_um, np.float32)
+        hv = h[fg & np.isfinite(h)]
+        if hv.size:
+            lo, hi = np.percentile(hv, [2, 98])
+            # The support lies well below the tablet: anything lower than the tablet's 2nd
+            # percentile by more than the tablet's own height range is not tablet.
+            fg &= ~(np.isfinite(h) & (h < lo - max(hi - lo, 1.0)))
+
+    if opening_px > 0:
+        fg = ndimage.binary_opening(fg, structure=np.ones((3, 3), bool), iterations=opening_px)
+    labels, count = ndimage.label(fg)
+    if count == 0:
+        return fg
+    sizes = ndimage.sum(fg, labels, index=np.arange(1, count + 1))
+    keep = np.concatenate([[False], sizes >= min_part_fraction * sizes.max()])
+    fg = keep[labels]
+    fg = ndimage.binary_fill_holes(fg)
+    fg = ndimage.binary_erosion(fg, structure=np.ones((3, 3), bool), iterations=1)
+    return fg

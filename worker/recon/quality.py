@@ -1,0 +1,84 @@
+"""Noise levels of the measurements, estimated from the data (inputs to the fusion weights).
+
+- Normals: photometric stereo with K inlier lights at polar angle θ fits b = ρn by least
+  squares; with shading noise σ_s (in units of n·l) the tangential error of n has variance
+  ≈ σ_s²·2/(K·sin²θ) per component (LᵀL ≈ diag(K sin²θ/2, K sin²θ/2, K cos²θ)). σ_s is the
+  RMS residual corrected for the 3 fitted parameters, √(K/(K−3))·residual; pixels with
+  K = 3 (no residual) take the image's median. A floor of `floor_rad` stands for what the
+  residual cannot see (calibration of the light directions, non-Lambertian bias).
+- Fringe heights: σ_f from the data itself, 1.4826·MAD of the height minus its 5×5 median
+  (the median follows the surface, the difference is noise, scaled by the median-filter
+  variance factor), per pixel divided by √(azimuths used / median azimuths used).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["fringe_sigma_um", "normal_sigma_rad"]
+
+
+def normal_sigma_rad(
+    residual: np.ndarray,
+    lights_used: np.ndarray,
+    *,
+    polar_deg: float,
+    floor_rad: float = 0.003,
+) -> np.ndarray:
+    """(H, W) float32 angular noise of photometric normals (rad); inf where not solved.
+
+    residual: (H, W) RMS misfit in units of n·l; lights_used: (H, W) inlier count.
+    """
+    res = np.asarray(residual, np.float32)
+    k = np.asarray(lights_used, np.float32)
+    if res.shape != k.shape:
+        raise ValueError(f"residual {res.shape} and lights_used {k.shape} must match")
+    if not 0 < polar_deg < 90:
+        raise ValueError(f"polar_deg must be in (0, 90), got {polar_deg}")
+    solved = np.isfinite(res) & (k >= 3)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sigma_s = np.where(k > 3, res * np.sqrt(k / np.maximum(k - 3, 1)), np.nan)
+    fit = solved & np.isfinite(sigma_s) & (k > 3)
+    typical = float(np.median(sigma_s[fit])) if fit.any() else 0.02
+    sigma_s = np.where(fit, sigma_s, typical)
+    sin2 = np.sin(np.radians(polar_deg)) ** 2
+    sig = sigma_s * np.sqrt(2.0 / (np.maximum(k, 3) * sin2))
+    sig = np.sqrt(sig**2 + floor_rad**2)
+    return np.where(solved, sig, np.inf).astype(np.float32)
+
+
+def fringe_sigma_um(
+    height_um: np.ndarray,
+    mask: np.ndarray,
+    *,
+    azimuths_used: np.ndarray | None = None,
+    floor_um: float = 0.05,
+) -> tuple[np.ndarray, float]:
+    """Per-pixel noise of the fringe heights (µm) and the image-wide estimate σ_f.
+
+    height_um: (H, W) NaN where none; mask: (H, W) bool. Returns ((H, W) float32, inf where
+    no height; σ_f). The 5×5 median of white noise has variance ≈ π/(2·25) of the input's,
+    so h − median has variance σ²(1 + π/50); the MAD is divided by √(1 + π/50).
+    """
+    h = np.asarray(height_um, np.float32)
+    m = np.asarray(mask, bool) & np.isfinite(h)
+    if h.shape != m.shape:
+        raise ValueError(f"height_um {h.shape} and mask {m.shape} must match")
+    out = np.full(h.shape, np.inf, np.float32)
+    if m.sum() < 25:
+        return out, float("inf")
+    fill = float(np.median(h[m]))
+    med = ndimage.median_filter(np.where(m, h, fill), size=5, mode="nearest")
+    inner = ndimage.binary_erosion(m, structure=np.ones((5, 5), bool))
+    sample = (h - med)[inner if inner.any() else m]
+    mad = float(np.median(np.abs(sample - np.median(sample))))
+    sigma = max(1.4826 * mad / np.sqrt(1 + np.pi / 50), floor_um)
+    if azimuths_used is not None:
+        a = np.asarray(azimuths_used, np.float32)
+        typical = float(np.median(a[m])) if m.any() else 1.0
+        scale = np.sqrt(typical / np.maximum(a, 1))
+    else:
+        scale = np.ones(h.shape, np.float32)
+    out[m] = (sigma * scale)[m]
+    return out, sigma
