@@ -37,13 +37,14 @@ let loadController = null;
 let hashTimer = null;
 let restoring = decodeViewState(window.location.hash);
 
+let ui = null; // bound below; the viewer reports changes while it is being created
 const viewer = createViewer($('viewer'), {
   onChange: () => {
-    ui.changed();
+    ui?.changed();
     if (currentModel) scheduleHash();
   },
 });
-const ui = bindViewerUi(viewer, {
+ui = bindViewerUi(viewer, {
   getHeightUrl: () => (currentModel?.assets?.['height.npy'] ? api.assetHref(currentModel.assets['height.npy']) : null),
   getPixelSizeUm: () => Number(currentModel?.report?.pixel_size_um) || null,
   getImageWidth: () => Number(currentModel?.report?.image_size?.[0]) || null,

@@ -33,12 +33,15 @@ const vertexShader = /* glsl */ `
 
 const fragmentShader = /* glsl */ `
   precision highp float;
+  layout(location = 0) out highp vec4 pc_fragColor;
+  #define gl_FragColor pc_fragColor
   in vec2 vUv;
   in vec3 vNormalW;
   in vec3 vPosW;
   in float vHeightMm;
 
   uniform int uMode;
+  uniform mat3 uObjectToWorld;    // rotation of the model (identity: the scan frame is the world)
   uniform sampler2D uNormalMap;
   uniform bool uHasNormalMap;
   uniform sampler2D uAlbedoMap;
@@ -99,7 +102,7 @@ const fragmentShader = /* glsl */ `
 
   void main() {
     vec3 nObj = uHasNormalMap ? objectNormal(vUv, 0.0) : vNormalW;
-    vec3 n = normalize(mat3(modelMatrix) * nObj);
+    vec3 n = normalize(uObjectToWorld * nObj);
     if (!uHasNormalMap) n = normalize(vNormalW);
     vec3 colour;
     if (uMode == 0) {          // natural colour
@@ -114,26 +117,29 @@ const fragmentShader = /* glsl */ `
       } else colour = lit(uClay, n) * 0.5;
     } else if (uMode == 3) {   // accessibility / ambient occlusion
       colour = uHasTexture ? uClay * texture(uAccessMap, vUv).r : lit(uClay, n) * 0.5;
-    } else if (uMode == 4) {   // relief: unsharp-masked normals (n + k (n - blur n))
-      vec3 blur = vec3(0.0);
+    } else if (uMode == 4) {   // relief: unsharp-masked normals on a flattened tablet
+      // n' = normalize(v + (1 + k)(n - blur(n))): the slow curvature of the tablet (blur) is
+      // replaced by the view axis v = (0, 0, -1), and the detail n - blur(n) is amplified, so
+      // every wedge reads the same wherever it sits on the curved surface.
       if (uHasNormalMap) {
-        float radius = 12.0;
+        vec3 blur = vec3(0.0);
+        float radius = 24.0;
         float lod = log2(radius) - 1.0;
-        for (int i = 0; i < 8; i++) {
-          float a = float(i) * 0.78539816;
+        for (int i = 0; i < 12; i++) {
+          float a = float(i) * 0.52359878;
           vec2 off = vec2(cos(a), sin(a)) * radius * uTexelSize;
           blur += objectNormal(vUv + off, lod);
         }
         blur = normalize(blur);
-        vec3 enhanced = nObj + uEmphasis * (nObj - blur);
-        n = normalize(mat3(modelMatrix) * enhanced);
+        vec3 enhanced = vec3(0.0, 0.0, -1.0) + (1.0 + uEmphasis) * (nObj - blur);
+        n = normalize(uObjectToWorld * enhanced);
       }
       colour = lit(uClay, n);
     } else if (uMode == 5) {   // depth: height on a colour ramp, lit by exaggerated normals
       float span = max(uHeightRange.y - uHeightRange.x, 1e-6);
       float t = (vHeightMm - uHeightRange.x) / span;
       vec3 ex = uHasNormalMap ? vec3(nObj.xy * uEmphasis, nObj.z) : nObj;
-      n = normalize(mat3(modelMatrix) * ex);
+      n = normalize(uObjectToWorld * ex);
       colour = sequential(t) * (0.35 + 0.65 * max(dot(n, normalize(uLightDir)), 0.0));
     } else if (uMode == 6) {   // normals as stored: RGB = (n + 1) / 2
       colour = nObj * 0.5 + 0.5;
@@ -165,6 +171,7 @@ export function createRelightMaterial() {
     side: THREE.DoubleSide,
     uniforms: {
       uMode: { value: 0 },
+      uObjectToWorld: { value: new THREE.Matrix3() },
       uNormalMap: { value: blank },
       uHasNormalMap: { value: false },
       uAlbedoMap: { value: blank },

@@ -336,6 +336,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     const img = loaded.normals?.image ?? loaded.albedo?.image;
     if (img) u.uTexelSize.value.set(1 / img.width, 1 / img.height);
     u.uHeightRange.value.set(-bb.max.z, -bb.min.z);
+    u.uObjectToWorld.value.setFromMatrix4(mesh.matrixWorld);
     setShading({}); // applies the mode and starts loading its maps
     setView('obverse');
     onChange('model');

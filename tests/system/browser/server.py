@@ -1,0 +1,264 @@
+"""The real library service on a free port, with seeded tablets and models, and Debian's
+chromium driven by Playwright — shared by the browser tests' fixtures and the screenshot
+script (``python tests/system/browser/take_screenshots.py``).
+
+Nothing here downloads a browser: Playwright launches ``/usr/bin/chromium`` with SwiftShader
+(software WebGL), so the tests run on machines without a GPU.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+
+
+def load_sibling(name: str):
+    """Import a module of this folder by path (the tests folders are not packages)."""
+    import importlib.util
+
+    key = f"hammurabi_browser_{name}"
+    if key in sys.modules:
+        return sys.modules[key]
+    spec = importlib.util.spec_from_file_location(key, Path(__file__).with_name(f"{name}.py"))
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[key] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+_synthetic = load_sibling("synthetic_model")
+ModelFacts = _synthetic.ModelFacts
+make_model_dir = _synthetic.make_model_dir
+
+REPO = Path(__file__).resolve().parents[3]
+FRONTEND = REPO / "frontend"
+DIST = FRONTEND / "dist"
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+    "--no-sandbox",
+    "--disable-gpu-sandbox",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--no-first-run",
+]
+STAFF_EMAIL = "curator@example.org"
+STAFF_PASSWORD = "clay tablets are patient"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _sources_newer_than(stamp: Path) -> bool:
+    if not stamp.exists():
+        return True
+    t = stamp.stat().st_mtime
+    watched = [*FRONTEND.glob("*.html"), FRONTEND / "vite.config.js", *FRONTEND.glob("src/**/*")]
+    return any(p.stat().st_mtime > t for p in watched if p.is_file())
+
+
+def ensure_frontend_built() -> Path:
+    """Build frontend/dist if it is missing or older than its sources (once, under a lock)."""
+    DIST.parent.mkdir(exist_ok=True)
+    with open(FRONTEND / ".build.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if _sources_newer_than(DIST / "index.html"):
+            subprocess.run(
+                ["npm", "run", "--silent", "build"],
+                cwd=FRONTEND,
+                check=True,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.PIPE,
+            )
+    return DIST
+
+
+@dataclass
+class Library:
+    """A running library service with what the tests seeded into it."""
+
+    url: str
+    process: subprocess.Popen
+    data_dir: Path
+    tablets: dict[str, int] = field(default_factory=dict)  # designation -> id
+    models: dict[str, int] = field(default_factory=dict)  # label -> model id
+    facts: ModelFacts | None = None
+    log: object = None
+
+    def stop(self) -> None:
+        self.process.terminate()
+        try:
+            self.process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+        if self.log is not None:
+            self.log.close()
+
+
+TABLETS = [
+    dict(
+        designation="P999001",
+        p_number="P999001",
+        museum_no="BM 99001",
+        collection="British Museum",
+        period="Old Babylonian",
+        provenience="Sippar",
+        genre="Legal",
+        language="Akkadian",
+        is_public=True,
+    ),
+    dict(
+        designation="P999002",
+        p_number="P999002",
+        museum_no="YBC 99002",
+        collection="Yale Babylonian Collection",
+        period="Ur III",
+        provenience="Drehem",
+        genre="Administrative",
+        language="Sumerian",
+        is_public=True,
+    ),
+    dict(
+        designation="P999003",
+        p_number="P999003",
+        museum_no="VAT 99003",
+        collection="Vorderasiatisches Museum",
+        period="Old Babylonian",
+        provenience="Nippur",
+        genre="Literary",
+        language="Sumerian",
+        is_public=True,
+    ),
+]
+
+
+def _seed(data_dir: Path, work: Path) -> tuple[dict, dict, ModelFacts]:
+    """Migrate a fresh SQLite database and add an institution, a staff user, three tablets and
+    two model versions of the first tablet's obverse (made through the job functions the
+    worker uses, so they are stored exactly like real models)."""
+    from backend import crud, jobs
+    from backend.db import make_engine, make_sessionmaker, migrate, session_scope
+    from backend.storage import LocalStorage
+    from backend.tables import Role, Scan
+
+    url = f"sqlite:///{data_dir / 'hammurabi.db'}"
+    migrate(url)
+    engine = make_engine(url)
+    factory = make_sessionmaker(engine)
+    storage = LocalStorage(data_dir / "storage")
+    tablets: dict[str, int] = {}
+    models: dict[str, int] = {}
+    facts = make_model_dir(work / "model_v1", seed=1)
+    make_model_dir(work / "model_v2", seed=2, tint=0.08)
+    with session_scope(factory) as session:
+        inst = crud.get_or_create_institution(session, name="Test Museum")
+        crud.create_user(
+            session,
+            email=STAFF_EMAIL,
+            role=Role.staff,
+            password=STAFF_PASSWORD,
+            institution_id=inst.id,
+        )
+        for fields in TABLETS:
+            t = crud.create_tablet(session, fields=dict(fields), institution_id=inst.id)
+            tablets[t.designation] = t.id
+    first = tablets[TABLETS[0]["designation"]]
+    for label in ("v1", "v2"):
+        with session_scope(factory) as session:
+            scan = Scan(
+                tablet_id=first,
+                face="obverse",
+                bundle_key=f"fixtures/{label}",
+                bundle_sha256="0" * 64,
+                size_bytes=0,
+                manifest={},
+            )
+            session.add(scan)
+            session.flush()
+            job = jobs.create(session, scan=scan)
+            session.commit()
+            jobs.mark_running(session, job_id=job.id)
+            model = jobs.mark_succeeded(
+                session, job_id=job.id, model_dir=work / f"model_{label}", storage=storage
+            )
+            models[label] = model.id
+    engine.dispose()
+    return tablets, models, facts
+
+
+def start_library(tmp: Path) -> Library:
+    """Seed a data directory under ``tmp`` and serve it (API + built frontend)."""
+    dist = ensure_frontend_built()
+    data_dir = tmp / "data"
+    data_dir.mkdir(parents=True)
+    tablets, models, facts = _seed(data_dir, tmp)
+    port = free_port()
+    env = {
+        **os.environ,
+        "HAMMURABI_ENVIRONMENT": "test",
+        "HAMMURABI_DATA_DIR": str(data_dir),
+        "HAMMURABI_FRONTEND_DIST": str(dist),
+        "HAMMURABI_SECRET_KEY": "browser-tests-" + "k" * 40,
+    }
+    log = open(tmp / "server.log", "wb")  # noqa: SIM115 - lives as long as the server
+    process = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "uvicorn",
+            "backend.main:create_app",
+            "--factory",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+            "--log-level",
+            "warning",
+        ],
+        cwd=REPO,
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            if httpx.get(f"{url}/api/v1/health", timeout=1).status_code == 200:
+                break
+        except httpx.HTTPError:
+            pass
+        if process.poll() is not None or time.monotonic() > deadline:
+            process.kill()
+            process.wait()
+            log.close()
+            raise RuntimeError(
+                f"the library service did not start: {(tmp / 'server.log').read_text()[-2000:]}"
+            )
+        time.sleep(0.2)
+    return Library(
+        url=url,
+        process=process,
+        data_dir=data_dir,
+        tablets=tablets,
+        models=models,
+        facts=facts,
+        log=log,
+    )
+
+
+def launch_chromium(playwright):
+    return playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
