@@ -173,12 +173,38 @@ def test_zip_symlink_entry(written_bundle, tmp_path) -> None:
     assert "symbolic link" in _only(validate_bundle(path), "dark.png")
 
 
-def test_zip_duplicate_and_encrypted_entries(written_bundle, tmp_path) -> None:
+def test_zip_duplicate_entries(written_bundle, tmp_path) -> None:
     entries = _entries(written_bundle())
     entries.append(("dark.png", dict(entries)["object/p0.png"]))
     with pytest.warns(UserWarning, match="Duplicate name"):
         path = _zip(tmp_path / "dup.zip", entries)
     assert "appears 2 times" in _only(validate_bundle(path), "dark.png")
+
+
+def _patch_header_field(path: Path, name: bytes, *, local_at: int, central_at: int, value: int):
+    """Set a 2-byte field of ``name``'s local and central ZIP headers."""
+    data = bytearray(path.read_bytes())
+    for signature, at, len_at, name_at in (
+        (b"PK\x03\x04", local_at, 26, 30),
+        (b"PK\x01\x02", central_at, 28, 46),
+    ):
+        start = 0
+        while (start := data.find(signature, start)) >= 0:
+            (name_len,) = struct.unpack_from("<H", data, start + len_at)
+            if data[start + name_at : start + name_at + name_len] == name:
+                struct.pack_into("<H", data, start + at, value)
+            start += 4
+    path.write_bytes(bytes(data))
+
+
+def test_zip_encrypted_and_unsupported_members(written_bundle) -> None:
+    path = written_bundle(as_zip=True)
+    _patch_header_field(path, b"dark.png", local_at=6, central_at=8, value=1)  # encrypted flag
+    _patch_header_field(path, b"object/p0.png", local_at=8, central_at=10, value=9)  # deflate64
+    problems = {p.where: p.message for p in validate_bundle(path)}
+    assert set(problems) == {"dark.png", "object/p0.png"}
+    assert "encrypted" in problems["dark.png"]
+    assert "cannot be read from the archive" in problems["object/p0.png"]
 
 
 def _bomb_bundle(written_bundle, tmp_path: Path, *, zero_bytes: int) -> Path:
