@@ -32,14 +32,22 @@ _TWO_PI = 2.0 * np.pi
 class UnwrappedPhase:
     """Output of :func:`temporal_unwrap`.
 
-    dpsi_rad : (H, W) float32, the unwrapped object − reference phase of the FINEST period.
+    dpsi_rad : (H, W) float32, the unwrapped object − reference phase expressed for the
+        FINEST period P_{N−1} (a level ℓ's phase is scaled by P_ℓ/P_{N−1}), so that
+        h = −dpsi·P_{N−1}/(2π tanθ) whichever level a pixel stopped at.  NaN where the
+        coarsest level is unusable or NaN.
     order_residual : (H, W) float32, the largest |prediction − unwrapped| over the levels, in
         fringe orders (cycles): 0 is perfect agreement, 0.5 a coin toss on the order.  A
         reliability map: values above ~0.25 flag pixels whose order may be wrong.
+    level_used : (H, W) int16, index of the finest level that refined the pixel (−1: none).
+    weight : (H, W) float32, relative inverse variance of the height, (m·P_{N−1}/P_ℓ)² with m
+        the modulation at the level used (1 when no modulation was given); 0 where NaN.
     """
 
     dpsi_rad: np.ndarray
     order_residual: np.ndarray
+    level_used: np.ndarray
+    weight: np.ndarray
 
 
 def wrap_phase(phase_rad: np.ndarray, *, cycle_rad: float = _TWO_PI) -> np.ndarray:
@@ -74,8 +82,14 @@ def _check(wrapped_rad, period_um):
     return w.astype(np.float32, copy=False), p
 
 
-def temporal_unwrap(wrapped_rad: np.ndarray, period_um) -> UnwrappedPhase:
-    """Hierarchical temporal unwrapping, coarse → fine.
+def temporal_unwrap(
+    wrapped_rad: np.ndarray,
+    period_um,
+    *,
+    modulation: np.ndarray | None = None,
+    min_modulation: float = 0.15,
+) -> UnwrappedPhase:
+    """Hierarchical temporal unwrapping, coarse → fine, stopping where fringes fade.
 
     Parameters
     ----------
@@ -84,24 +98,51 @@ def temporal_unwrap(wrapped_rad: np.ndarray, period_um) -> UnwrappedPhase:
         coarsest first; wrapped values in any 2π range (they are re-wrapped).  NaN allowed.
     period_um : (N,) float
         Fringe periods in µm, strictly decreasing.
+    modulation : (N, H, W) float, optional
+        Fringe modulation B/A per level, best the smaller of object and reference.  A level
+        whose modulation is below ``min_modulation`` at a pixel does not refine it: periods
+        finer than the camera or the projector resolve (the reference target shows it),
+        shadows and blurred walls.  The pixel keeps the scaled phase of its last good level,
+        and finer good levels may pick up from there (the scaled prediction error grows with
+        the skipped ratio; ``order_residual`` shows it).
+    min_modulation : float
+        Threshold for ``modulation``.
 
     Returns
     -------
     UnwrappedPhase
-        Unwrapped Δψ of the finest period (rad) and the order residual map.  NaN wherever a
-        level is NaN.
     """
     w, p = _check(wrapped_rad, period_um)
-    phi = wrap_phase(w[0])
+    if modulation is not None:
+        mod = np.asarray(modulation, dtype=np.float32)
+        if mod.shape != w.shape:
+            raise ValueError(f"modulation must have shape {w.shape}, got {mod.shape}")
+        good = np.nan_to_num(mod, nan=0.0) >= np.float32(min_modulation)
+    else:
+        mod = None
+        good = np.ones(w.shape, dtype=bool)
+    two_pi = np.float32(_TWO_PI)
+    phi = np.where(good[0], wrap_phase(w[0]), np.float32(np.nan))
+    level = np.where(np.isfinite(phi), 0, -1).astype(np.int16)
     worst = np.zeros(phi.shape, dtype=np.float32)
     for i in range(1, w.shape[0]):
         pred = phi * np.float32(p[i - 1] / p[i])
         wi = wrap_phase(w[i])
-        order = np.round((pred - wi) / np.float32(_TWO_PI))
-        phi = wi + np.float32(_TWO_PI) * order
-        worst = np.maximum(worst, np.abs(pred - phi) / np.float32(_TWO_PI))
-    worst = np.where(np.isfinite(phi), worst, np.float32(np.nan))
-    return UnwrappedPhase(dpsi_rad=phi.astype(np.float32), order_residual=worst)
+        refined = wi + two_pi * np.round((pred - wi) / two_pi)
+        use = good[i] & np.isfinite(refined)
+        phi = np.where(use, refined, pred)
+        worst = np.where(use, np.maximum(worst, np.abs(pred - refined) / two_pi), worst)
+        level = np.where(use, np.int16(i), level)
+    finite = np.isfinite(phi)
+    lev = np.clip(level, 0, None)
+    m_used = np.take_along_axis(mod, lev[None], axis=0)[0] if mod is not None else 1.0
+    weight = (m_used * np.float32(p[-1]) / p[lev].astype(np.float32)) ** 2
+    return UnwrappedPhase(
+        dpsi_rad=phi.astype(np.float32),
+        order_residual=np.where(finite, worst, np.float32(np.nan)),
+        level_used=level,
+        weight=np.where(finite, weight, 0.0).astype(np.float32),
+    )
 
 
 def paper_consistent_unwrap(half_range_rad: np.ndarray, period_um) -> UnwrappedPhase:
@@ -126,5 +167,10 @@ def paper_consistent_unwrap(half_range_rad: np.ndarray, period_um) -> UnwrappedP
         order = np.round((pred - w[i]) / np.float32(np.pi))
         phi = w[i] + np.float32(np.pi) * order
         worst = np.maximum(worst, np.abs(pred - phi) / np.float32(_TWO_PI))
-    worst = np.where(np.isfinite(phi), worst, np.float32(np.nan))
-    return UnwrappedPhase(dpsi_rad=phi.astype(np.float32), order_residual=worst)
+    finite = np.isfinite(phi)
+    return UnwrappedPhase(
+        dpsi_rad=phi.astype(np.float32),
+        order_residual=np.where(finite, worst, np.float32(np.nan)),
+        level_used=np.where(finite, w.shape[0] - 1, -1).astype(np.int16),
+        weight=finite.astype(np.float32),
+    )

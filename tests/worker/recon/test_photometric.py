@@ -172,3 +172,18 @@ def test_photometric_stereo_rejects_bad_input(shading, lights, culprit):
 def test_light_directions_reject_bad_polar():
     with pytest.raises(ValueError, match="polar_deg"):
         light_directions([0.0, 90.0], 95.0)
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("recon_sim")
+def test_simulated_bundle_normals_against_ground_truth(simulated_recon):
+    r = simulated_recon
+    err = np.arccos(np.clip(np.sum(r.normals * r.gt_normals, axis=-1), -1, 1))
+    z = err[r.smooth] / r.sigma_normal_rad[r.smooth]
+    # On smooth interior pixels only noise should remain: z = |error| / predicted RMS error
+    # of a 2-D Gaussian has median 0.83 and 99th percentile 2.1; 1.5 and 4 leave room for
+    # pixels that average a slightly curved surface.
+    assert np.median(z) < 1.5
+    assert np.percentile(z, 99) < 4.0
+    # Every tablet pixel gets a normal (8 lights: at least 3 always see a visible point).
+    assert np.mean(np.isfinite(err[r.mask])) > 0.99

@@ -71,6 +71,25 @@ def test_temporal_unwrap_flags_a_corrupted_level():
     assert np.all(res.order_residual[1:] < 1e-4)
 
 
+def test_temporal_unwrap_stops_where_the_fringes_fade():
+    periods = np.array([800.0, 400.0, 200.0, 100.0])
+    dpsi_fine = np.linspace(-20, 20, 30)[None, :] * np.ones((6, 1))  # in units of P = 100
+    levels = np.stack([dpsi_fine * 100 / p for p in periods])
+    mod = np.full(levels.shape, 0.8)
+    # The finest period is not resolved anywhere (its wrapped phase is garbage) and the
+    # 200 µm level is in shadow on row 0.
+    levels[3] = np.random.default_rng(0).uniform(-np.pi, np.pi, levels[3].shape)
+    mod[3] = 0.02
+    mod[2, 0] = 0.05
+    res = temporal_unwrap(wrap_phase(levels), periods, modulation=mod)
+    np.testing.assert_allclose(res.dpsi_rad, dpsi_fine, atol=1e-4)
+    np.testing.assert_array_equal(res.level_used[1:], 2)
+    np.testing.assert_array_equal(res.level_used[0], 1)
+    # Weight (m·P_fine/P_used)²: 0.8·100/200 on rows 1.., 0.8·100/400 on row 0.
+    np.testing.assert_allclose(res.weight[1:], 0.16, rtol=1e-5)
+    np.testing.assert_allclose(res.weight[0], 0.04, rtol=1e-5)
+
+
 def test_paper_consistent_unwrap_on_mod_pi_carre_phases():
     # Quarter-period schedule: the coarsest difference stays within ±π/2; periods double.
     periods = 3200.0 / 2.0 ** np.arange(6)
@@ -105,3 +124,15 @@ def test_temporal_unwrap_rejects_bad_input(wrapped, periods, culprit):
 def test_phase_difference_rejects_mismatched_shapes():
     with pytest.raises(ValueError, match="reference_rad"):
         phase_difference(np.zeros((3, 3)), np.zeros((3, 4)))
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("recon_sim")
+def test_simulated_bundle_heights_against_ground_truth(simulated_recon):
+    r = simulated_recon
+    e = r.height_um - r.gt_height_um
+    z = np.abs(e[r.smooth]) / r.sigma_height_um[r.smooth]
+    assert np.mean(np.isfinite(z)) > 0.99
+    # |e|/σ of a Gaussian: median 0.67, 99th percentile 2.6.
+    assert np.nanmedian(z) < 1.5
+    assert np.nanpercentile(z, 99) < 5.0
