@@ -1,0 +1,147 @@
+"""Search: text prefixes, filters, facets (other filters in force), sort, paging, formats."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+
+import pytest
+
+from backend.tables import Tablet
+
+RECORDS = [
+    # designation, museum_no, period, genre, language, public, has_3d, publication, notes
+    ("VAT 15259", "VAT 15259", "Uruk IV", "mathematical", None, True, True, "ATU 5, pl. 057", None),
+    ("VAT 15171", "VAT 15171", "Uruk IV", "mathematical", None, True, False, "ATU 5", None),
+    ("BM 80150", "BM 80150", "Old Babylonian", "literary", "Sumerian", True, False, "CT 42", None),
+    ("BM 85194", "BM 85194", "Old Babylonian", "mathematical", "Akkadian", True, True, None,
+     "squares and circles"),
+    ("YBC 7289", "YBC 7289", "Old Babylonian", "mathematical", "Akkadian", True, False,
+     "MCT 42", "square root of two"),
+    ("K 3375", "K 3375", "Neo-Assyrian", "literary", "Akkadian", True, False, "CT 13", None),
+    ("Secret A", "X 1", "Old Babylonian", "literary", "Sumerian", False, False, None, "square"),
+]  # fmt: skip
+
+
+@pytest.fixture
+def catalogue(world):
+    ids = {}
+    with world.session() as session:
+        for i, (des, mus, per, gen, lang, public, has_3d, pub, notes) in enumerate(RECORDS):
+            tablet = Tablet(
+                designation=des,
+                p_number=f"P1000{i:02d}",
+                museum_no=mus,
+                period=per,
+                genre=gen,
+                language=lang,
+                is_public=public,
+                has_3d=has_3d,
+                primary_publication=pub,
+                notes=notes,
+                institution_id=world.institution_a,
+                extra={},
+            )
+            session.add(tablet)
+            session.flush()
+            ids[des] = tablet.id
+    return ids
+
+
+def _designations(response) -> list[str]:
+    assert response.status_code == 200, response.text
+    return [item["designation"] for item in response.json()["items"]]
+
+
+def test_text_prefixes_across_fields(client, catalogue):
+    assert _designations(client.get("/api/v1/tablets", params={"q": "vat 152"})) == ["VAT 15259"]
+    # publication, notes, P-number
+    assert set(_designations(client.get("/api/v1/tablets", params={"q": "ct"}))) == {
+        "BM 80150",
+        "K 3375",
+    }
+    assert _designations(client.get("/api/v1/tablets", params={"q": "root two"})) == ["YBC 7289"]
+    assert _designations(client.get("/api/v1/tablets", params={"q": "P100005"})) == ["K 3375"]
+    assert _designations(client.get("/api/v1/tablets", params={"q": "nothing-like-this"})) == []
+
+
+def test_private_records_only_for_their_institution(client, world, catalogue):
+    anonymous = _designations(client.get("/api/v1/tablets", params={"q": "square"}))
+    own = _designations(
+        client.get("/api/v1/tablets", params={"q": "square"}, headers=world.headers("staff_own"))
+    )
+    other = _designations(
+        client.get("/api/v1/tablets", params={"q": "square"}, headers=world.headers("staff_other"))
+    )
+    assert sorted(anonymous) == ["BM 85194", "YBC 7289"]
+    assert sorted(own) == ["BM 85194", "Secret A", "YBC 7289"]
+    assert sorted(other) == sorted(anonymous)
+
+
+def test_filters_and_facets(client, catalogue):
+    response = client.get(
+        "/api/v1/tablets",
+        params=[("period", "Old Babylonian"), ("period", "Uruk IV"), ("genre", "mathematical")],
+    )
+    body = response.json()
+    assert sorted(_designations(response)) == ["BM 85194", "VAT 15171", "VAT 15259", "YBC 7289"]
+    assert body["total"] == 4
+    facets = {
+        name: {f["value"]: f["count"] for f in values} for name, values in body["facets"].items()
+    }
+    # a facet counts with every filter but its own: periods of the mathematical tablets...
+    assert facets["period"] == {"Old Babylonian": 2, "Uruk IV": 2}
+    # ...and genres of the tablets of the two chosen periods (public ones: 5)
+    assert facets["genre"] == {"mathematical": 4, "literary": 1}
+    assert facets["has_3d"] == {True: 2, False: 2}
+    assert facets["language"] == {"Akkadian": 2, None: 2}
+    response = client.get("/api/v1/tablets", params={"has_3d": "true", "language": "Akkadian"})
+    assert _designations(response) == ["BM 85194"]
+
+
+def test_sort_and_paging(client, catalogue):
+    pages = [
+        client.get("/api/v1/tablets", params={"sort": "-designation", "page": p, "page_size": 4})
+        for p in (1, 2)
+    ]
+    names = _designations(pages[0]) + _designations(pages[1])
+    # the world's own public record ("Public A") is in the library too
+    public = sorted([*(r[0] for r in RECORDS if r[5]), "Public A"], reverse=True)
+    assert names == public
+    assert pages[1].json()["total"] == len(public) and pages[1].json()["page"] == 2
+    first = _designations(client.get("/api/v1/tablets", params={"q": "vat", "sort": "relevance"}))
+    assert sorted(first) == ["VAT 15171", "VAT 15259"]
+
+
+def test_csv_and_jsonl_export_every_match(client, catalogue):
+    response = client.get("/api/v1/tablets", params={"genre": "literary", "format": "csv"})
+    assert response.status_code == 200
+    assert response.headers["content-type"].startswith("text/csv")
+    rows = list(csv.DictReader(io.StringIO(response.text)))
+    assert sorted(r["designation"] for r in rows) == ["BM 80150", "K 3375"]
+    assert rows[0]["url"].startswith("/api/v1/tablets/")
+
+    response = client.get(
+        "/api/v1/tablets", params={"genre": "literary"}, headers={"Accept": "application/x-ndjson"}
+    )
+    assert response.headers["content-type"].startswith("application/x-ndjson")
+    lines = [json.loads(line) for line in response.text.splitlines()]
+    assert sorted(line["designation"] for line in lines) == ["BM 80150", "K 3375"]
+    assert response.headers["x-total-count"] == "2"
+
+
+@pytest.mark.parametrize(
+    ("params", "where"),
+    [
+        ({"page_size": 100000}, "query.page_size"),
+        ({"sort": "colour"}, "query.sort"),
+        ({"page": 0}, "query.page"),
+        ({"has_3d": "maybe"}, "query.has_3d"),
+        ({"format": "xml"}, "query.format"),
+    ],
+)
+def test_bad_parameters_name_the_culprit(client, params, where):
+    response = client.get("/api/v1/tablets", params=params)
+    assert response.status_code == 422
+    assert response.json()["where"] == where
