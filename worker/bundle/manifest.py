@@ -139,7 +139,18 @@ def parse_manifest_json(
         return None, [Problem(where, "is nested too deeply")]
     except ValueError as exc:  # duplicate keys, NaN, overflow, over-long integers
         return None, [Problem(where, f"is not strict JSON: {exc}")]
+    if "\\u" in text and _has_lone_surrogate(value):
+        return None, [Problem(where, "holds a \\u escape of a lone surrogate (not Unicode text)")]
     return value, []
+
+
+def _has_lone_surrogate(value: Any) -> bool:
+    """True if a string anywhere in ``value`` (keys included) cannot be encoded as UTF-8."""
+    try:
+        json.dumps(value, ensure_ascii=False).encode("utf-8")
+    except UnicodeEncodeError:
+        return True
+    return False
 
 
 def _is_number(value: Any) -> bool:

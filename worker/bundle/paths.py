@@ -17,6 +17,10 @@ def path_problem(path: str) -> str | None:
         return "must be a string (a relative POSIX path)"
     if path == "":
         return "must not be empty"
+    try:
+        path.encode("utf-8")
+    except UnicodeEncodeError:
+        return f"{path!r}: is not valid Unicode (holds a lone surrogate)"
     if "\x00" in path:
         return "must not contain a NUL character"
     if "\\" in path:

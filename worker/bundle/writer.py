@@ -130,7 +130,8 @@ def write_bundle(
     if not problems:
         try:
             text = json.dumps(value, indent=2, ensure_ascii=False, allow_nan=False)
-        except (TypeError, ValueError) as exc:
+            text.encode("utf-8")
+        except (TypeError, ValueError) as exc:  # UnicodeEncodeError is a ValueError
             problems.append(Problem("manifest", f"cannot be written as strict JSON: {exc}"))
     if problems:
         raise BundleError(problems)

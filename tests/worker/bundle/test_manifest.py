@@ -30,6 +30,8 @@ def _wheres(problems: list[Problem]) -> list[str]:
         (b"", "not valid JSON"),
         (b"[" * 100_000 + b"]" * 100_000, "nested too deeply"),
         (b'{"a": ' + b"9" * 5000 + b"}", "not strict JSON"),
+        (b'{"a": "x\\ud800"}', "lone surrogate"),
+        (b'{"\\udfff": 1}', "lone surrogate"),
     ],
 )
 def test_parse_refuses_non_strict_json(text: bytes, fragment: str) -> None:
@@ -37,6 +39,10 @@ def test_parse_refuses_non_strict_json(text: bytes, fragment: str) -> None:
     assert value is None
     assert len(problems) == 1 and problems[0].where == "manifest.json"
     assert fragment in problems[0].message
+
+
+def test_escaped_surrogate_pairs_are_fine() -> None:
+    assert parse_manifest_json(b'{"a": "\\ud83d\\ude00"}') == ({"a": "\U0001f600"}, [])
 
 
 def test_parse_caps_size_before_parsing() -> None:
@@ -209,6 +215,7 @@ def test_dark_needs_no_azimuth_and_unknown_kind_is_reported(valid_bundle) -> Non
         ("C:x.png", "drive letter"),
         ("c:/x.png", "drive letter"),
         ("a\x00.png", "NUL"),
+        ("a\ud800.png", "lone surrogate"),
         ("", "empty"),
         ("a/", "does not name a file"),
         (".", "does not name a file"),

@@ -19,7 +19,7 @@ scalars = (
     | st.integers(min_value=-(10**30), max_value=10**30)
     | st.floats(allow_nan=True, allow_infinity=True)
     | st.sampled_from(
-        ["", "dark", "fringe", "color", "red", "object", "reference", "../x", "a.png"]
+        ["", "dark", "fringe", "color", "red", "object", "reference", "../x", "a.png", "\ud800.png"]
     )
     | st.text(max_size=6)
 )

@@ -96,9 +96,12 @@ def test_numpy_values_in_the_manifest_are_written_as_json(tmp_path, valid_bundle
     assert isinstance(manifest["camera"]["width"], np.int64)  # input not modified
 
 
-def test_nan_in_an_extra_field_is_refused(tmp_path, valid_bundle) -> None:
+def test_nan_or_lone_surrogate_in_an_extra_field_is_refused(tmp_path, valid_bundle) -> None:
     manifest, images = valid_bundle()
     manifest["scan"]["note"] = float("nan")
+    with pytest.raises(BundleError, match="strict JSON"):
+        write_bundle(tmp_path / "b", manifest, images)
+    manifest["scan"]["note"] = "\ud800"
     with pytest.raises(BundleError, match="strict JSON"):
         write_bundle(tmp_path / "b", manifest, images)
     assert list(tmp_path.iterdir()) == []
