@@ -320,7 +320,8 @@ def _check_scan(c: _Checker, value: dict) -> None:
     tablet = c.obj(scan, "tablet", "scan.tablet", required=False)
     for key, item in (tablet or {}).items():
         if not isinstance(item, str):
-            c.add(f"scan.tablet.{key}", f"must be a string, not {_type_name(item)}")
+            shown = key if len(key) <= 40 else key[:37] + "..."
+            c.add(f"scan.tablet.{shown}", f"must be a string, not {_type_name(item)}")
 
 
 def _pose_problem(pose: Any) -> str | None:

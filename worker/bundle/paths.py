@@ -5,18 +5,22 @@ from __future__ import annotations
 import re
 
 _DRIVE = re.compile(r"^[A-Za-z]:")
+MAX_PATH_CHARS = 4096  # PATH_MAX on Linux; also keeps messages that quote a path short
 
 
 def path_problem(path: str) -> str | None:
     """Why ``path`` may not name a file of a bundle, or None when it may.
 
     Invalid per the spec: ``..`` segments, a leading ``/``, a drive letter, a backslash or a
-    NUL. Also refused: the empty path and paths that name no file (only ``.`` or ``/``).
+    NUL. Also refused: the empty path, paths that name no file (only ``.`` or ``/``), paths
+    longer than 4096 characters and strings that are not valid Unicode.
     """
     if not isinstance(path, str):
         return "must be a string (a relative POSIX path)"
     if path == "":
         return "must not be empty"
+    if len(path) > MAX_PATH_CHARS:
+        return f"is {len(path)} characters long, more than {MAX_PATH_CHARS}"
     try:
         path.encode("utf-8")
     except UnicodeEncodeError:

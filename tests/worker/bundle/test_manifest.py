@@ -216,6 +216,7 @@ def test_dark_needs_no_azimuth_and_unknown_kind_is_reported(valid_bundle) -> Non
         ("c:/x.png", "drive letter"),
         ("a\x00.png", "NUL"),
         ("a\ud800.png", "lone surrogate"),
+        ("a" * 5000 + ".png", "is 5004 characters long"),
         ("", "empty"),
         ("a/", "does not name a file"),
         (".", "does not name a file"),
