@@ -13,16 +13,20 @@ from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
+from scipy import ndimage
 
 from worker.recon.color import rgb_reflectance
 from worker.recon.fringe import four_step_phase
 from worker.recon.height import combine_azimuths, height_from_phase
-from worker.recon.photometric import light_directions, photometric_stereo
+from worker.recon.photometric import PhotometricResult, light_directions, photometric_stereo
 from worker.recon.radiometry import flat_field
 from worker.recon.unwrap import phase_difference, temporal_unwrap
 
 __all__ = ["Measurements", "ReconstructionError", "measure_bundle"]
+
+HIGHLIGHT_CONE_DEG = 20.0
 
 
 class ReconstructionError(Exception):
@@ -45,6 +49,7 @@ class Measurements:
     fringe_spread_um: np.ndarray | None = None
     azimuths_used: np.ndarray | None = None
     modulation: np.ndarray | None = None
+    rough_height_um: np.ndarray | None = None  # smooth, filled: where the light came from
     used: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     timings: dict = field(default_factory=dict)
@@ -82,7 +87,14 @@ def measure_bundle(bundle, *, progress: Callable[[str, float], None]) -> Measure
     rho_ref = float(man.reference.reflectance)
 
     t0 = time.perf_counter()
-    progress("photometric", 0.02)
+    progress("fringe", 0.02)
+    fringe = [f for f in obj if f.kind == "fringe"]
+    if fringe:
+        _fringes(bundle, fringe, meas, rho_ref, progress)
+    meas.timings["fringe"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    progress("photometric", 0.55)
     photo = [f for f in obj if f.kind == "photometric"]
     if len(photo) >= 3:
         _photometric(bundle, photo, meas, rho_ref)
@@ -91,13 +103,6 @@ def measure_bundle(bundle, *, progress: Callable[[str, float], None]) -> Measure
             f"photometric: {len(photo)} object frame(s), at least 3 are needed; normals not computed"
         )
     meas.timings["photometric"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    progress("fringe", 0.25)
-    fringe = [f for f in obj if f.kind == "fringe"]
-    if fringe:
-        _fringes(bundle, fringe, meas, rho_ref, progress)
-    meas.timings["fringe"] = time.perf_counter() - t0
 
     if meas.normals is None and meas.fringe_height_um is None:
         raise ReconstructionError(
@@ -115,11 +120,40 @@ def measure_bundle(bundle, *, progress: Callable[[str, float], None]) -> Measure
     return meas
 
 
+def _source_footprint(ref_stack, frames, height_um, pixel_size_um):
+    """Reference radiance at p′ = p − h·tanθ·u instead of p (in place).
+
+    The light that reaches the surface point above p crossed the reference plane at p′
+    (SCAN_BUNDLE.md): with a non-uniform source the flat field must be read there, or the
+    shading of each light is off by E(p′)/E(p), a few per cent per millimetre of height,
+    which tilts the normals by about a degree.
+    """
+    rows, cols = height_um.shape
+    r, c = np.mgrid[0:rows, 0:cols].astype(np.float32)
+    for k, f in enumerate(frames):
+        shift = height_um * np.float32(np.tan(np.radians(f.polar_deg)) / pixel_size_um)
+        phi = np.radians(f.azimuth_deg)
+        map_x = c - shift * np.float32(np.sin(phi))
+        map_y = r - shift * np.float32(np.cos(phi))
+        ref_stack[k] = cv2.remap(
+            ref_stack[k],
+            map_x,
+            map_y,
+            interpolation=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+    return ref_stack
+
+
 def _shading(bundle, frames, stack, rho_ref, meas, kind):
     refs = [bundle.reference_of(f) for f in frames]
     polar = np.array([f.polar_deg for f in frames], np.float64)
     if all(r is not None for r in refs):
         ref_stack = bundle.radiance_many(refs)
+        if meas.rough_height_um is not None:
+            ref_stack = _source_footprint(
+                ref_stack, frames, meas.rough_height_um, meas.pixel_size_um
+            )
         return flat_field(stack, ref_stack, reference_reflectance=rho_ref, polar_deg=polar)
     meas.warnings.append(
         f"{kind}: no reference frames; assuming uniform illumination, albedo is relative"
@@ -136,13 +170,45 @@ def _photometric(bundle, photo, meas, rho_ref):
     del stack
     az = np.array([f.azimuth_deg for f in photo])
     polar = np.array([f.polar_deg for f in photo])
-    res = photometric_stereo(shading, light_directions(az, polar))
+    lights = light_directions(az, polar)
+    res = _without_highlights(shading, lights, photometric_stereo(shading, lights))
     meas.normals = res.normals
     meas.albedo = res.albedo
     meas.residual = res.residual
     meas.lights_used = res.lights_used
     meas.photometric_polar_deg = float(np.median(polar))
     meas.used["photometric_azimuths_deg"] = sorted({_key(a) for a in az})
+
+
+def _without_highlights(shading, lights, first, *, cone_deg=HIGHLIGHT_CONE_DEG, min_left=4):
+    """Solve again, without the samples seen near the mirror direction of their light.
+
+    A glossy surface (fired clay, consolidants) adds a highlight where the normal is near
+    the half vector h_k = (l_k + v)/|l_k + v| of light k and the camera direction v =
+    (0, 0, −1). Highlights a few per cent above the Lambertian shading pass any outlier test
+    yet tilt the normal by a degree or more; the geometry tells where they can be, so those
+    samples are dropped (NaN) when at least `min_left` lights remain, and the pixels solved
+    again. The cone (20°) is where a Blinn–Phong lobe of exponent ≥ 40 still exceeds 1 % of
+    its peak.
+    """
+    half = lights + np.array([0.0, 0.0, -1.0])
+    half /= np.linalg.norm(half, axis=1, keepdims=True)
+    n = first.normals
+    cos = np.einsum("hwc,kc->khw", np.nan_to_num(n), half.astype(np.float32))
+    near = cos > np.float32(np.cos(np.radians(cone_deg)))
+    left = np.sum(np.isfinite(shading) & ~near, axis=0)
+    redo = near.any(axis=0) & (left >= min_left) & np.all(np.isfinite(n), axis=-1)
+    if not redo.any():
+        return first
+    cleaned = np.where(near & redo[None], np.float32(np.nan), shading)
+    second = photometric_stereo(cleaned, lights, mask=redo)
+    ok = redo & np.all(np.isfinite(second.normals), axis=-1)
+    return PhotometricResult(
+        normals=np.where(ok[..., None], second.normals, first.normals),
+        albedo=np.where(ok, second.albedo, first.albedo),
+        residual=np.where(ok, second.residual, first.residual),
+        lights_used=np.where(ok, second.lights_used, first.lights_used),
+    )
 
 
 def _color(bundle, color, meas, rho_ref):
@@ -234,7 +300,7 @@ def _fringes(bundle, fringe, meas, rho_ref, progress):
             heights.append(np.where(ok, h, np.nan).astype(np.float32))
             weights.append(np.where(ok, np.square(np.nan_to_num(m)), 0).astype(np.float32))
             mods.append(np.where(np.isfinite(m), m, np.nan).astype(np.float32))
-        progress("fringe", 0.25 + 0.5 * (i + 1) / total)
+        progress("fringe", 0.02 + 0.5 * (i + 1) / total)
     comb = combine_azimuths(np.stack(heights), np.stack(weights))
     meas.fringe_height_um = comb.height_um
     meas.fringe_spread_um = comb.spread_um
@@ -247,8 +313,19 @@ def _fringes(bundle, fringe, meas, rho_ref, progress):
             meas.modulation = np.nanmax(np.stack(mods), axis=0).astype(np.float32)
             if meas.albedo is None:
                 meas.albedo = np.nanmax(np.stack(ambient), axis=0).astype(np.float32)
+    meas.rough_height_um = _rough_height(comb.height_um)
     meas.used["fringe_azimuths_deg"] = sorted({k[0] for k in sets})
     meas.used["fringe_periods_um"] = {
         f"{k[0]:g}": [float(p) for p, _, _ in levels] for k, levels in sets.items()
     }
     meas.used["fringe_sets"] = sum(len(v) for v in sets.values())
+
+
+def _rough_height(height_um):
+    """Fringe heights made whole and smooth (5×5 median, nearest fill, Gaussian σ = 2 px)."""
+    finite = np.isfinite(height_um)
+    if not finite.any():
+        return None
+    idx = ndimage.distance_transform_edt(~finite, return_distances=False, return_indices=True)
+    filled = height_um[tuple(idx)]
+    return ndimage.gaussian_filter(ndimage.median_filter(filled, size=5), 2.0).astype(np.float32)
