@@ -8,7 +8,6 @@ uncompressed size and on compression ratio hold whatever the archive's headers c
 
 from __future__ import annotations
 
-import bz2  # noqa: F401 - makes sure zipfile can inflate bzip2 members
 import errno
 import lzma
 import os
@@ -63,8 +62,6 @@ class ContainerError(Exception):
 class Container:
     """Common interface: `read` a member's bytes (whole or a head), `close`."""
 
-    manifest_path: str = MANIFEST
-
     def __init__(self, limits: Limits):
         self.limits = limits
         self._seen_bytes: dict[str, int] = {}
@@ -100,7 +97,11 @@ class DirectoryContainer(Container):
     def _open(self, path: str) -> int:
         """fd of the regular file ``path`` under root; no component may be a symbolic link."""
         parts = path.split("/")
-        dir_fd = os.open(self.root, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            dir_fd = os.open(self.root, os.O_RDONLY | os.O_DIRECTORY)
+        except OSError as exc:
+            message = f"cannot be read: the bundle folder is gone ({exc.strerror})"
+            raise ContainerError(message) from None
         try:
             for part in parts[:-1]:
                 try:
@@ -164,7 +165,6 @@ class ZipContainer(Container):
         super().__init__(limits)
         self.archive = archive
         self.prefix = prefix
-        self.manifest_path = prefix + MANIFEST
         self._entries: dict[str, list[zipfile.ZipInfo]] = {}
         self._archive_bytes = archive_bytes
         for info in archive.infolist():
@@ -189,7 +189,7 @@ class ZipContainer(Container):
         return info
 
     def read(self, path: str, *, limit: int | None = None) -> bytes:
-        name = path if path == self.manifest_path else self.prefix + path
+        name = self.prefix + path
         info = self._info(name)
         lim = self.limits
         cap = lim.max_file_bytes if limit is None else min(limit, lim.max_file_bytes)

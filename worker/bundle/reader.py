@@ -28,6 +28,7 @@ from worker.bundle.images import (
     value_problem,
 )
 from worker.bundle.manifest import (
+    MANIFEST_NAME,
     Frame,
     Manifest,
     build_manifest,
@@ -268,10 +269,9 @@ def _load_from(container: Container, problems: list[Problem], limits: Limits, *,
     """(manifest or None, infos, problems) of an open container; ``problems`` so far."""
     try:
         # One byte over the cap is enough to know it is too large.
-        data = container.read(container.manifest_path, limit=limits.max_manifest_bytes + 1)
+        data = container.read(MANIFEST_NAME, limit=limits.max_manifest_bytes + 1)
     except ContainerError as exc:
-        where = container.manifest_path
-        return None, {}, [*problems, Problem(where, str(exc))]
+        return None, {}, [*problems, Problem(MANIFEST_NAME, str(exc))]
     value, parse_problems = parse_manifest_json(data, max_bytes=limits.max_manifest_bytes)
     if parse_problems:
         return None, {}, [*problems, *parse_problems]

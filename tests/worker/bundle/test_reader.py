@@ -147,3 +147,15 @@ def test_values_are_checked_while_decoding(tmp_path, valid_bundle) -> None:
     with pytest.raises(BundleError, match="object/p0.png"):
         open_bundle(path, decode_all=True)
     assert [p.where for p in validate_bundle(path)] == ["object/p0.png"]
+
+
+def test_a_vanished_bundle_raises_bundle_error(written_bundle) -> None:
+    import shutil
+
+    path = written_bundle()
+    with open_bundle(path) as bundle:
+        shutil.rmtree(path)
+        with pytest.raises(
+            BundleError, match="dark.png: cannot be read: the bundle folder is gone"
+        ):
+            bundle.raw(0)
