@@ -37,6 +37,12 @@ def free_port() -> int:
 class RealLibrary:
     def __init__(self, data: Path) -> None:
         self.data, self.port, self.process = data, free_port(), None
+        self.restarts: list[threading.Timer] = []
+
+    def restart_later(self, delay_s: float) -> None:
+        timer = threading.Timer(delay_s, self.start, kwargs={"wait": False})
+        self.restarts.append(timer)
+        timer.start()
 
     @property
     def url(self) -> str:
@@ -89,6 +95,8 @@ def library(tmp_path):
     server = RealLibrary(tmp_path / "library")
     server.start()
     yield server
+    for timer in server.restarts:
+        timer.join()  # never leave a server started after the test is over
     if server.process.poll() is None:
         server.kill()
 
@@ -122,7 +130,7 @@ def test_upload_to_the_library_survives_kill_9_and_is_idempotent(library, tmp_pa
         calls.append(done)
         if len(calls) == 4:  # three chunks confirmed: kill -9, restart a moment later
             library.kill()
-            threading.Timer(0.3, library.start, kwargs={"wait": False}).start()
+            library.restart_later(0.3)
 
     client = LibraryClient(library.url, library.token, retries=14, backoff_s=0.05, timeout_s=30)
     try:
