@@ -1,0 +1,60 @@
+"""Tablet mask (worker.recon.mask): a bright tablet on a dark support, with defects."""
+
+import numpy as np
+import pytest
+
+from worker.recon.mask import otsu_threshold, tablet_mask
+
+
+def _scene(rng, rows=120, cols=160):
+    """Clay (ρ ≈ 0.35 ± 20 %) inside a rounded rectangle on velvet (ρ ≈ 0.03 ± 20 %)."""
+    y, x = np.mgrid[0:rows, 0:cols]
+    tablet = (np.abs(x - cols / 2) < 60) & (np.abs(y - rows / 2) < 45)
+    albedo = np.where(tablet, 0.35, 0.03) * rng.uniform(0.8, 1.2, (rows, cols))
+    return tablet, albedo.astype(np.float32)
+
+
+def test_otsu_splits_two_populations():
+    rng = np.random.default_rng(0)
+    v = np.concatenate([rng.normal(0, 1, 1000), rng.normal(10, 1, 1000)])
+    assert 3 < otsu_threshold(v) < 7
+    with pytest.raises(ValueError, match="values"):
+        otsu_threshold(np.ones(10))
+
+
+def test_mask_is_the_tablet_without_rim_pixels_or_specks():
+    rng = np.random.default_rng(1)
+    tablet, albedo = _scene(rng)
+    albedo[5, 5] = 0.5  # a bright speck on the support (dust)
+    albedo[60, 80] = np.nan  # a pixel inside without albedo (hole, filled)
+    mask = tablet_mask(albedo)
+    assert not mask[5, 5]
+    assert mask[60, 80]
+    # One rim pixel is eroded: the mask is the tablet minus its 1-px border, nothing else.
+    inner = np.zeros_like(tablet)
+    inner[1:-1, 1:-1] = tablet[1:-1, 1:-1] & tablet[:-2, 1:-1] & tablet[2:, 1:-1]
+    inner &= np.roll(tablet, 1, 1) & np.roll(tablet, -1, 1)
+    assert not np.any(mask & ~tablet)
+    assert (mask & inner).sum() >= 0.97 * inner.sum()
+
+
+def test_unmeasured_and_low_support_pixels_are_dropped():
+    rng = np.random.default_rng(2)
+    tablet, albedo = _scene(rng)
+    # A bright support block (a V-block) at the right edge, far below the tablet.
+    albedo[:, 150:] = 0.4
+    height = np.where(tablet, 1000.0, -3000.0) + rng.normal(0, 5, tablet.shape)
+    has_normal = np.ones(tablet.shape, bool)
+    has_normal[:, :8] = False  # nothing measured on the left columns
+    albedo[:, :8] = 0.4
+    mask = tablet_mask(albedo, has_normal=has_normal, height_um=height)
+    assert not mask[:, 140:].any()
+    assert not mask[:, :8].any()
+    assert mask[60, 80]
+
+
+def test_bad_shapes_are_named():
+    with pytest.raises(ValueError, match="has_normal"):
+        tablet_mask(np.ones((4, 4)), has_normal=np.ones((3, 4), bool))
+    with pytest.raises(ValueError, match="brightness"):
+        tablet_mask(np.ones(4))
