@@ -126,11 +126,13 @@ class GrblStage(Stage):
         status = self.status()
         self._locked = status.state == "Alarm"
 
-    def _reconnect(self) -> None:
+    def _reconnect(self, *, allow_locked: bool) -> None:
         self.link.reopen(within_s=self.reconnect_timeout_s)
         self.link.discard_input()
         status = self._status()  # re-sync: the first complete status report after reopening
-        if status.state == "Alarm":
+        if status.state == "Alarm" and allow_locked:
+            self._locked = True
+        elif status.state == "Alarm":
             # The board reset when the port re-enumerated: its position is gone.
             self._locked = True
             raise DeviceError(
@@ -138,14 +140,18 @@ class GrblStage(Stage):
                 "position; check the cable, then run `rig-agent resume` (it re-homes)"
             )
 
-    def _with_reconnect(self, action: Callable[[], T]) -> T:
-        """Run ``action``; after a USB drop reopen by URL, re-sync and run it once more."""
+    def _with_reconnect(self, action: Callable[[], T], *, allow_locked: bool = False) -> T:
+        """Run ``action``; after a USB drop reopen by URL, re-sync and run it once more.
+
+        A board that reset while the port was away comes back locked in ``Alarm``: only
+        ``allow_locked`` actions (homing, unlocking) may then go on.
+        """
         try:
             return action()
         except LINK_ERRORS:
             pass
         try:
-            self._reconnect()
+            self._reconnect(allow_locked=allow_locked)
         except (LinkLost, *LINK_ERRORS) as exc:
             raise LinkLost(
                 f"lost the motion controller at {self.link.url!r} and could not reconnect "
@@ -170,7 +176,9 @@ class GrblStage(Stage):
         """
         if "\n" in command or "\r" in command:
             raise ValueError(f"command must be a single line, got {command!r}")
-        return self._with_reconnect(lambda: self._send(command, timeout_s))
+        return self._with_reconnect(
+            lambda: self._send(command, timeout_s), allow_locked=command in ("$H", "$X")
+        )
 
     def _send(self, command: str, timeout_s: float | None) -> list[str]:
         self.link.write_line(command)

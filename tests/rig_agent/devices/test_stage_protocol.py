@@ -201,3 +201,11 @@ def test_multi_line_commands_are_refused(scripted, connection):
     stage, _ = scripted(connection([]))
     with pytest.raises(ValueError, match="single line"):
         stage.send("G0 X1\nG0 X2")
+
+
+def test_homing_goes_on_after_a_usb_drop_that_reset_the_board(scripted, connection):
+    dropped = connection([], fail_on=b"$H\n")
+    rebooted = connection([(b"?", ALARM0), (b"$H\n", b"ok\r\n"), (b"?", IDLE0)])
+    stage, _ = scripted(dropped, rebooted)
+    stage.home()
+    assert not stage.needs_homing() and rebooted.script == []
