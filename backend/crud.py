@@ -87,7 +87,7 @@ def create_user(
     if "@" not in email:
         raise ValueError(f"email: {email!r} is not an e-mail address")
     if role == Role.staff and institution_id is None:
-        raise ValueError("institution: staff users must belong to an institution")
+        raise ValueError("institution_id: staff users must belong to an institution")
     if get_user_by_email(session, email=email) is not None:
         raise ValueError(f"email: a user {email} already exists")
     user = User(
