@@ -86,21 +86,26 @@ def plan_frames(
     """
     polar = preset.polar_deg
 
-    def exposure() -> float:
-        return (
-            float(rng.choice(noise.exposures)) if len(noise.exposures) > 1 else noise.exposures[0]
-        )
+    def exposure(target: str) -> float:
+        # An operator exposes the bright white target shorter and the dark clay longer.
+        pool = [e for e in noise.exposures if (e <= 1.0 if target == "reference" else e >= 1.0)]
+        pool = pool or list(noise.exposures)
+        return float(rng.choice(pool)) if len(pool) > 1 else pool[0]
 
     lit: list[FrameSpec] = []
     for target in ("object", "reference"):
         for az in preset.photometric_deg:
-            lit.append(FrameSpec("photometric", target, float(az), polar, exposure=exposure()))
+            lit.append(
+                FrameSpec("photometric", target, float(az), polar, exposure=exposure(target))
+            )
         for az in preset.color_deg:
             for ch in CHANNELS:
-                lit.append(FrameSpec("color", target, float(az), polar, ch, exposure=exposure()))
+                lit.append(
+                    FrameSpec("color", target, float(az), polar, ch, exposure=exposure(target))
+                )
         for az in preset.fringe_deg:
             for period in periods_um(az, width, height, pixel_size_um):
-                e = exposure()  # one exposure per fringe set keeps the set consistent
+                e = exposure(target)  # one exposure per fringe set keeps the set consistent
                 for ph in PHASES_DEG:
                     lit.append(FrameSpec("fringe", target, float(az), polar, None, period, ph, e))
     darks = [FrameSpec("dark", exposure=e) for e in sorted({f.exposure for f in lit})]

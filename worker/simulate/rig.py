@@ -127,8 +127,10 @@ def _shading(
     phi, theta = np.radians(frame.azimuth_deg), np.radians(frame.polar_deg)
     ux, uy = np.sin(phi), np.cos(phi)
     light = np.array([np.sin(theta) * ux, np.sin(theta) * uy, -np.cos(theta)], np.float32)
+    # float32 throughout: coordinates <= 1e5 µm keep 0.01 µm precision, phases 1e-4 rad.
     xs = sample_coords_um(view.width, view.pixel_size_um, view.supersample)[None, :]
     ys = sample_coords_um(view.height, view.pixel_size_um, view.supersample)[:, None]
+    xs, ys = xs.astype(np.float32), ys.astype(np.float32)
     source = "projector" if frame.kind == "fringe" else "lamp"
     if frame.target == "reference":
         shape = (ys.shape[0], xs.shape[1])
@@ -144,7 +146,9 @@ def _shading(
         if frame.kind == "color":
             rho = view.albedo_ss[..., CHANNELS.index(frame.channel)]
         else:
-            rho = view.albedo_ss.mean(axis=-1)
+            if "grey" not in view.cache:
+                view.cache["grey"] = view.albedo_ss.mean(axis=-1)
+            rho = view.cache["grey"]
         shade = rho * np.maximum(ndotl, 0)
         if noise.specular_weight > 0:
             half = light + np.array([0, 0, -1], np.float32)

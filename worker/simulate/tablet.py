@@ -138,7 +138,10 @@ def _inscribe_face(pillow: Pillow, face: str, rng: np.random.Generator):
     rulings = np.arange(-v_max + pitch, v_max - 0.5 * pitch, pitch)
     rows = np.concatenate([[-v_max], rulings])
     pieces: list[Polyhedron] = []
-    us = np.linspace(-u_max, u_max, int(2 * u_max // 3000) + 2)
+    # Rulings follow the face in straight segments short enough (<= 2 mm) that the
+    # convex surface rises < 10 µm above each chord, and stop before the rounded edge.
+    u_rule = a - 0.6 * r
+    us = np.linspace(-u_rule, u_rule, int(2 * u_rule // 2000) + 2)
     for v in rulings:
         depth = rng.uniform(50.0, 110.0)
         points, normals = _face_points(pillow, face, np.stack([us, np.full_like(us, v)], -1))
