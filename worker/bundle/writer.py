@@ -12,7 +12,8 @@ import os
 import shutil
 import uuid
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -137,13 +138,11 @@ def write_bundle(
         raise BundleError(problems)
     if (out.exists() or out.is_symlink()) and not overwrite:
         raise FileExistsError(f"out: {out} exists (pass overwrite=True to replace it)")
-    files = {MANIFEST_NAME: (text + "\n").encode("utf-8")}
-    for key, array in images.items():
-        path = normalize_path(key)
-        files[path] = encode_image(path, array)
+    manifest_bytes = (text + "\n").encode("utf-8")
+    items = sorted(((normalize_path(k), a) for k, a in images.items()), key=lambda item: item[0])
     tmp = out.with_name(f".{out.name}.tmp-{uuid.uuid4().hex}")
     try:
-        (_write_zip if as_zip else _write_dir)(tmp, files)
+        (_write_zip if as_zip else _write_dir)(tmp, manifest_bytes, _encoded(items))
         _replace(tmp, out)
     except BaseException:
         _remove(tmp)
@@ -151,29 +150,49 @@ def write_bundle(
     return out
 
 
-def _write_dir(tmp: Path, files: dict[str, bytes]) -> None:
+def _encoded(items: list[tuple[str, np.ndarray]]) -> Iterator[tuple[str, bytes]]:
+    """``(path, file bytes)`` in the order of ``items``, encoded a few at a time in threads
+    (the encoders release the GIL); at most one batch of encoded files is held in memory."""
+    workers = min(4, os.cpu_count() or 1)
+    batch = 2 * workers
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for start in range(0, len(items), batch):
+            chunk = items[start : start + batch]
+            yield from zip(
+                (path for path, _ in chunk),
+                pool.map(lambda item: encode_image(*item), chunk),
+                strict=True,
+            )
+
+
+def _write_dir(tmp: Path, manifest: bytes, files: Iterator[tuple[str, bytes]]) -> None:
     tmp.mkdir(parents=False)
-    for path in sorted(files):
+    _write_file(tmp / MANIFEST_NAME, manifest)
+    for path, data in files:
         target = tmp / path
         target.parent.mkdir(parents=True, exist_ok=True)
-        _write_file(target, files[path])
+        _write_file(target, data)
     for folder, _, _ in os.walk(tmp, topdown=False):
         _fsync_dir(Path(folder))
 
 
-def _write_zip(tmp: Path, files: dict[str, bytes]) -> None:
-    names = [MANIFEST_NAME] + sorted(n for n in files if n != MANIFEST_NAME)
+def _write_zip(tmp: Path, manifest: bytes, files: Iterator[tuple[str, bytes]]) -> None:
     with open(tmp, "xb") as fh:
         with zipfile.ZipFile(fh, "w", compression=zipfile.ZIP_STORED) as archive:
-            for name in names:
-                info = zipfile.ZipInfo(name, date_time=_ZIP_TIME)
-                info.create_system = 3
-                info.external_attr = 0o100644 << 16
-                compress = name == MANIFEST_NAME
-                info.compress_type = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
-                archive.writestr(info, files[name])
+            archive.writestr(_zip_info(MANIFEST_NAME, zipfile.ZIP_DEFLATED), manifest)
+            for path, data in files:
+                archive.writestr(_zip_info(path, zipfile.ZIP_STORED), data)
         fh.flush()
         os.fsync(fh.fileno())
+
+
+def _zip_info(name: str, compress_type: int) -> zipfile.ZipInfo:
+    """Fixed time stamp and mode, so that the same input gives the same bytes."""
+    info = zipfile.ZipInfo(name, date_time=_ZIP_TIME)
+    info.create_system = 3
+    info.external_attr = 0o100644 << 16
+    info.compress_type = compress_type
+    return info
 
 
 def _write_file(path: Path, data: bytes) -> None:
