@@ -1,4 +1,4 @@
-"""``rig-agent``: calibrate, scan, resume, check, upload, status, clean.
+"""The scanner PC's agent: calibrate, scan, resume, check, upload, status, clean.
 
 Errors are printed as one plain message (no traceback) with an exit code:
 0 done, 1 quality check or upload refused, 2 bad arguments or settings,

@@ -171,10 +171,11 @@ def _upload(
     bundle = scan.path / (scan.state.get("bundle") or "bundle.zip")
     if not bundle.is_file():
         raise UploadError(f"scan {scan.id[:8]} has no bundle yet; run `rig-agent scan`/`resume`")
-    size = bundle.stat().st_size
+    size, digest = bundle.stat().st_size, sha256_file(bundle)
     record = dict(scan.state.get("upload") or {})
-    if record.get("size_bytes") != size or record.get("tablet_id") != tablet_id:
-        record = {"size_bytes": size, "tablet_id": tablet_id, "sha256": sha256_file(bundle)}
+    same = (record.get("size_bytes"), record.get("sha256"), record.get("tablet_id"))
+    if same != (size, digest, tablet_id):  # another file or tablet: never mix bytes
+        record = {"size_bytes": size, "tablet_id": tablet_id, "sha256": digest}
     upload = _resume_or_create(scan, client, record, bundle.name)
     ranges = upload["ranges"]
     chunk = int(upload.get("chunk_size") or 8 << 20)

@@ -126,6 +126,9 @@ def finish(scan: SpoolScan, spool: Spool) -> QualityReport:
     """Quality check, then (for a complete object scan) the bundle with its calibration."""
     report = check(scan)
     meta = scan.meta
+    already = scan.state.get("phase") in ("bundled", "uploaded")
+    if already and (scan.path / "bundle.zip").is_file():
+        return report  # never rewrite a bundle that may be (partly) uploaded
     if meta["kind"] == "scan" and not scan.pending():
         calibration = spool.open(meta["calibration_id"])
         if calibration.pending():

@@ -133,3 +133,19 @@ def test_missing_ranges():
     assert missing_ranges([], 10) == [(0, 10)]
     assert missing_ranges([[2, 4], [6, 10]], 12) == [(0, 2), (4, 6), (10, 12)]
     assert missing_ranges([[0, 12]], 12) == []
+
+
+def test_a_changed_bundle_starts_a_new_upload(library, scan):
+    def crash(done: int, total: int) -> None:
+        if done >= 2 * CHUNK:
+            raise AgentCrash
+
+    c = client(library.url)
+    with pytest.raises(AgentCrash):
+        upload_scan(scan, c, tablet_id=7, progress=crash)
+    first_id = scan.state["upload"]["id"]
+    (scan.path / "bundle.zip").write_bytes(os.urandom(SIZE))  # same size, other bytes
+    upload_scan(scan, c, tablet_id=7)
+    c.close()
+    assert scan.state["upload"]["id"] != first_id
+    assert scan.state["upload"]["confirmed_sha256"] == local_sha(scan)
