@@ -8,9 +8,13 @@ projector is refused with a message that says to calibrate again.
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from rig_agent.plan import Shot
 from rig_agent.spool import SpoolScan
 
 
@@ -55,13 +59,32 @@ def build_manifest(scan: SpoolScan, calibration: SpoolScan) -> dict[str, Any]:
     }
 
 
+class SpooledFrames(Mapping[str, np.ndarray]):
+    """Frames by bundle path, decoded from the spool only when asked for: a standard scan
+    and its calibration hold hundreds of megapixel frames, more than should sit in memory."""
+
+    def __init__(self, sources: dict[str, tuple[SpoolScan, Shot]]) -> None:
+        self._sources = sources
+
+    def __getitem__(self, file: str) -> np.ndarray:
+        scan, shot = self._sources[file]
+        return scan.load_frame(shot)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._sources)
+
+    def __len__(self) -> int:
+        return len(self._sources)
+
+
 def write_scan_bundle(scan: SpoolScan, calibration: SpoolScan, out: Path | None = None) -> Path:
     """Write ``bundle.zip`` into the scan's spool directory (validated, atomic)."""
     from worker.bundle import BundleError, write_bundle
 
     manifest = build_manifest(scan, calibration)
-    images = {s.file: scan.load_frame(s) for s in scan.shots if s.role == "bundle"}
-    images.update({s.file: calibration.load_frame(s) for s in calibration.shots})
+    sources = {s.file: (scan, s) for s in scan.shots if s.role == "bundle"}
+    sources.update({s.file: (calibration, s) for s in calibration.shots})
+    images = SpooledFrames(sources)
     out = out or scan.path / "bundle.zip"
     try:
         write_bundle(out, manifest, images, as_zip=True, overwrite=True)

@@ -13,10 +13,7 @@ Checks (all fractions relative to full scale F = 2^bit_depth − 1):
   A = ΣI/4 and the amplitude B = ½·√((I₀ − I₁₈₀)² + (I₉₀ − I₂₇₀)²); the median of B/A on
   lit pixels below ``min_modulation``;
 * fringe drift — I₀ + I₁₈₀ = I₉₀ + I₂₇₀ = 2A for a still tablet, so the RMS of their
-  difference over lit pixels, relative to 2·mean(A), above ``max_drift``;
-  (the noise alone gives ≈ 2σ/(2·mean A): 1 % for σ = 8 levels at A = 720, so the
-  default 3 % flags a shift of a few pixels of texture but not the noise of a frame
-  whose signal is ≳ 100 σ — average frames (plan ``averaging``) if the camera is noisier);
+  difference, relative to 2·mean(A), above ``max_drift``;
 * moved tablet — the check frame (the first photometric light repeated at the end) fitted
   to the first one by a scale s (light drift), relative RMS of check − s·first above
   ``max_moved``.
@@ -26,6 +23,9 @@ white noise of σ per pixel gives a relative RMS of about √2·σ/(b·mean) for
 check and 2σ/(b·2·mean A) for the drift — with b = 4, under 1 % when the mean signal
 exceeds ~35σ — while a tablet shifted by a pixel or more changes the tiles along every
 edge, wedge and its outline. Average frames (plan ``averaging``) if a camera is noisier.
+
+Frames are read when a check needs them (a standard scan does not fit in memory as
+float arrays), each at most twice.
 """
 
 from __future__ import annotations
@@ -141,16 +141,32 @@ def check_scan(
         )
     present = [s for s in shots if s.key in captured]
     darks = {s.exposure: load(s).astype(np.float64) for s in present if s.kind == "dark"}
-    frames: dict[str, np.ndarray] = {}
+    frames = _Signals(present, load, darks)
     for shot in present:
-        if shot.kind == "dark":
-            continue
-        raw = load(shot)
-        frames[shot.key] = raw.astype(np.float64) - _dark_for(darks, shot.exposure, raw.shape)
-        _exposure_checks(report, shot, raw, frames[shot.key], full, limits)
+        if shot.kind != "dark":
+            raw = load(shot)
+            _exposure_checks(report, shot, raw, frames.subtract_dark(shot, raw), full, limits)
     _fringe_checks(report, present, frames, full, limits)
     _moved_check(report, present, frames, full, limits)
     return report
+
+
+class _Signals:
+    """Dark-subtracted frames (float64) by shot key, read on demand, never all at once."""
+
+    def __init__(self, shots: list[Shot], load: Loader, darks: dict[float, np.ndarray]):
+        self._shots = {s.key: s for s in shots if s.kind != "dark"}
+        self._load, self._darks = load, darks
+
+    def __contains__(self, key: str) -> bool:
+        return key in self._shots
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        shot = self._shots[key]
+        return self.subtract_dark(shot, self._load(shot))
+
+    def subtract_dark(self, shot: Shot, raw: np.ndarray) -> np.ndarray:
+        return raw.astype(np.float64) - _dark_for(self._darks, shot.exposure, raw.shape)
 
 
 def _dark_for(darks: dict[float, np.ndarray], exposure: float, shape) -> np.ndarray:
