@@ -161,15 +161,23 @@ class _Model:
 
     def residual(self, b, cols=slice(None)):
         """Signed residual s − l·b, the tolerance and the terminator test, each (K, n)."""
-        pred = self.lights32 @ b.astype(np.float32).T
-        rho = np.linalg.norm(b, axis=1).astype(np.float32)
-        tol = self.tolerance * np.maximum(pred, 0.0) + self.abs_tol
+        b32 = b.astype(np.float32)
+        pred = self.lights32 @ b32.T
+        rho = np.sqrt(np.einsum("ni,ni->n", b32, b32))
         front = pred > self.shadow * rho
-        return self.s[:, cols] - pred, np.maximum(tol, np.float32(1e-12)), front
+        # In place: these (K, n) passes dominate the cost of the whole fit.
+        r = np.subtract(self.s[:, cols], pred)
+        tol = np.maximum(pred, np.float32(0.0), out=pred)
+        tol *= self.tolerance
+        tol += max(self.abs_tol, np.float32(1e-12))
+        return r, tol, front
 
     def select(self, b):
         r, tol, front = self.residual(b)
-        return self.valid & front & (np.abs(r) <= tol)
+        inl = np.less_equal(np.abs(r, out=r), tol)
+        inl &= front
+        inl &= self.valid
+        return inl
 
     def score(self, b, ok, cand):
         """Consensus count, minus candidates far below the fit, minus a tie-breaking misfit.
@@ -417,7 +425,12 @@ def photometric_stereo(
     abs_tol = np.float32(noise_k * (noise_sigma or 0.0))
 
     for start in range(0, pix.size, _CHUNK_PIXELS):
-        idx = pix[start : start + _CHUNK_PIXELS]
+        # Without a mask the chunks are contiguous slices: no gather copy of the stack.
+        idx = (
+            pix[start : start + _CHUNK_PIXELS]
+            if mask is not None
+            else slice(start, min(start + _CHUNK_PIXELS, pix.size))
+        )
         s = flat[:, idx].astype(np.float32)
         valid = np.isfinite(s)
         s = np.where(valid, s, np.float32(0.0))

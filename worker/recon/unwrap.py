@@ -127,7 +127,8 @@ def temporal_unwrap(
     worst = np.zeros(phi.shape, dtype=np.float32)
     for i in range(1, w.shape[0]):
         pred = phi * np.float32(p[i - 1] / p[i])
-        wi = wrap_phase(w[i])
+        # No re-wrap needed: the rounding picks the 2π order whatever range w[i] is in.
+        wi = w[i]
         refined = wi + two_pi * np.round((pred - wi) / two_pi)
         use = good[i] & np.isfinite(refined)
         phi = np.where(use, refined, pred)
