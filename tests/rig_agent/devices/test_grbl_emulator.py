@@ -14,7 +14,9 @@ from rig_agent.devices.transport import SerialLink
 
 @pytest.fixture
 def emulator():
-    with GrblEmulator(EmulatorConfig(rapid_rate_per_s=2000.0)) as emu:
+    # 400 units/s: moves last long enough (0.25–0.75 s) to be seen running even on a busy
+    # machine, and short enough for a quick test.
+    with GrblEmulator(EmulatorConfig(rapid_rate_per_s=400.0)) as emu:
         yield emu
 
 
@@ -72,15 +74,23 @@ def test_gcode_errors_as_grbl_reports_them(port, line, reply):
     assert ask(port, line) == [reply]
 
 
+def wait_idle(conn: serial.Serial) -> str:
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        (report,) = ask(conn, b"?")
+        if report.startswith("<Idle|"):
+            return report
+        time.sleep(0.02)
+    raise AssertionError("the emulator never came to rest")
+
+
 def test_moves_take_time_and_report_run_then_idle(port):
     unlocked(port)
     assert ask(port, b"G90 G0 X200 Z10\n") == ["ok"]
     assert ask(port, b"?")[0].startswith("<Run|")
-    time.sleep(0.15)
-    assert ask(port, b"?") == ["<Idle|MPos:200.000,0.000,10.000|FS:0,0>"]
+    assert wait_idle(port) == "<Idle|MPos:200.000,0.000,10.000|FS:0,0>"
     assert ask(port, b"G91 G0 X-50\n") == ["ok"]
-    time.sleep(0.05)
-    assert ask(port, b"?") == ["<Idle|MPos:150.000,0.000,10.000|FS:0,0>"]
+    assert wait_idle(port) == "<Idle|MPos:150.000,0.000,10.000|FS:0,0>"
 
 
 def test_soft_limit_is_a_critical_alarm_until_reset(port):
