@@ -222,6 +222,12 @@ def _private_a(world, _role):
     return {"tablet_id": world.private_a}
 
 
+def _public_tablet_with_model(world, _role):
+    tablet_id = world.new_tablet(is_public=True)
+    world.new_model(tablet_id, assets={"model.glb": {"size_bytes": 4, "sha256": "0" * 64}})
+    return {"tablet_id": tablet_id}
+
+
 _OPTIONAL_ROWS = {
     "POST /api/v1/uploads": [
         Case(
@@ -276,12 +282,30 @@ _OPTIONAL_ROWS = {
             expect(404, 404, 200, 404, 200),
             params=_private_tablet_of_a_with_model,
         ),
+        Case(
+            "public tablet with a model",
+            expect(200, 200, 200, 200, 200),
+            params=_public_tablet_with_model,
+        ),
+        Case(
+            "public tablet without a model yet",
+            expect(404, 404, 404, 404, 404),
+            params=lambda w, role: {"tablet_id": w.new_tablet(is_public=True)},
+        ),
     ],
     "GET /api/v1/tablets/{tablet_id}/iiif/scene/{part}": [
         Case(
             "unknown part of private A: nobody learns more than 404",
             expect(404, 404, 404, 404, 404),
             params=lambda w, role: {"tablet_id": w.private_a, "part": "nothing"},
+        ),
+        Case(
+            "the obverse Scene of a private tablet of A with a model",
+            expect(404, 404, 200, 404, 200),
+            params=lambda w, role: {
+                **_private_tablet_of_a_with_model(w, role),
+                "part": "obverse",
+            },
         ),
     ],
     "GET /api/v1/scans/{scan_id}": [
