@@ -35,8 +35,11 @@ fi
 stamp=.venv/.installed-$(sha256sum pyproject.toml | cut -c1-16)
 if [ ! -f "$stamp" ]; then
   log "installing Python packages (pyproject.toml changed or first run)"
-  .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade "pip==25.3"
-  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[all]"
+  # This machine's pip.conf names optional local mirrors that may be absent: hide that noise only.
+  .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade "pip==25.3" \
+    2> >(grep -v "is neither a file nor a directory" >&2)
+  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[all]" \
+    2> >(grep -v "is neither a file nor a directory" >&2)
   rm -f .venv/.installed-*
   touch "$stamp"
 fi
@@ -47,9 +50,9 @@ if [ -f frontend/package.json ]; then
   if [ ! -f "frontend/node_modules/.installed-$lockhash" ]; then
     log "installing npm packages"
     if [ -f frontend/package-lock.json ]; then
-      (cd frontend && npm ci --no-audit --no-fund --loglevel=error)
+      (cd frontend && npm ci --no-audit --no-fund --loglevel=error >/dev/null)
     else
-      (cd frontend && npm install --no-audit --no-fund --loglevel=error)
+      (cd frontend && npm install --no-audit --no-fund --loglevel=error >/dev/null)
     fi
     rm -f frontend/node_modules/.installed-*
     touch "frontend/node_modules/.installed-$lockhash"
