@@ -3,6 +3,7 @@ main path on PostgreSQL as well)."""
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import io
 import json
@@ -13,10 +14,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy import select
 
+from backend import storage as storage_mod
+from backend import uploads as uploads_mod
+from backend.api import uploads as api_uploads_mod
 from backend.jobs import RECONSTRUCT_TASK, RecordingDispatcher
 from backend.main import create_app
 from backend.storage import LocalStorage
+from backend.tables import Upload
 from worker.bundle import write_bundle
 
 API = "/api/v1"
@@ -351,3 +357,46 @@ def test_a_broken_connection_keeps_what_arrived(client, world, app):
     assert state["ranges"] == [[20, 30]]
     part = app.state.settings.data_dir / "uploads" / f"{upload_id}.part"
     assert part.read_bytes()[20:30] == b"a" * 10
+
+
+def _no_space(*args, **kwargs):
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def test_full_disk_at_creation_is_507_and_keeps_nothing(client, world, app, monkeypatch):
+    monkeypatch.setattr(uploads_mod.os, "posix_fallocate", _no_space)
+    response = create(client, world, b"x" * 1000)
+    assert response.status_code == 507
+    assert response.json() == {"detail": "storage is full: nothing was stored", "where": "storage"}
+    assert list((app.state.settings.data_dir / "uploads").iterdir()) == []
+    with world.session() as session:
+        assert session.scalars(select(Upload)).all() == []
+
+
+def test_full_disk_during_a_chunk_is_507_and_records_nothing(client, world, monkeypatch):
+    upload_id = create(client, world, b"x" * 100).json()["id"]
+    monkeypatch.setattr(api_uploads_mod.os, "pwrite", _no_space)
+    response = put(client, world, upload_id, 0, b"y" * 100)
+    assert response.status_code == 507
+    monkeypatch.undo()
+    state = client.get(f"{API}/uploads/{upload_id}", headers=world.headers("staff_own")).json()
+    assert state["ranges"] == [] and state["state"] == "open"
+
+
+def test_full_storage_at_completion_keeps_the_upload_open(
+    client, world, dispatcher, app, tmp_path, monkeypatch
+):
+    data = bundle_bytes(tmp_path)
+    upload_id = create(client, world, data).json()["id"]
+    put(client, world, upload_id, 0, data)
+    store = LocalStorage(app.state.settings.resolved_storage_dir)
+    app.state.storage = store
+    monkeypatch.setattr(storage_mod.os, "fsync", _no_space)
+    response = complete(client, world, upload_id, sha(data))
+    assert response.status_code == 507 and response.json()["where"] == "storage"
+    monkeypatch.undo()
+    assert store.list() == [] and dispatcher.sent == []
+    scans = client.get(f"{API}/tablets/{world.private_a}/scans", headers=world.headers("admin"))
+    assert scans.json() == []
+    # Space freed: completing again works, from the bytes already received.
+    assert complete(client, world, upload_id, sha(data)).status_code == 201
