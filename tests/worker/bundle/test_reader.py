@@ -159,3 +159,20 @@ def test_a_vanished_bundle_raises_bundle_error(written_bundle) -> None:
             BundleError, match="dark.png: cannot be read: the bundle folder is gone"
         ):
             bundle.raw(0)
+
+
+def test_dark_frames_are_decoded_once(written_bundle, valid_bundle) -> None:
+    _, images = valid_bundle()
+    with open_bundle(written_bundle(as_zip=True)) as bundle:
+        reads: list[str] = []
+        read = bundle._container.read
+        bundle._container.read = lambda path, **kw: reads.append(path) or read(path, **kw)
+        bundle.radiance_many(bundle.frames[1:], max_workers=2)
+        for frame in bundle.frames[1:4]:
+            bundle.radiance(frame)
+        assert reads.count("dark.png") == 1
+        assert len(reads) == len(bundle.frames) - 1 + 3 + 1
+        # A dark frame's own radiance is lin(v) / exposure: nothing is subtracted from it.
+        np.testing.assert_allclose(
+            bundle.radiance(0), images["dark.png"] / np.float32(4095), rtol=1e-6
+        )
