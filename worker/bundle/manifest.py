@@ -251,8 +251,10 @@ def _type_name(value: Any) -> str:
 def _describe(value: Any) -> str:
     if isinstance(value, bool) or value is None:
         return json.dumps(value)
+    if isinstance(value, int) and abs(value) >= 10**40:
+        return "a very large integer"  # repr of a huge int can even raise ValueError
     if isinstance(value, int | float | str):
-        text = repr(value) if not isinstance(value, str) else json.dumps(value)
+        text = repr(value) if not isinstance(value, str) else json.dumps(value[:40])
         return text if len(text) <= 40 else text[:37] + "..."
     return _type_name(value)
 

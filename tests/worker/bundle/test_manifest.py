@@ -242,4 +242,7 @@ def test_huge_integers_are_not_numbers(valid_bundle) -> None:
     manifest, _ = valid_bundle()
     manifest["camera"]["pixel_size_um"] = 10**400
     manifest["frames"][1]["azimuth_deg"] = -(10**400)
-    assert _wheres(check_manifest(manifest)) == ["camera.pixel_size_um", "frames[1].azimuth_deg"]
+    manifest["frames"][2]["kind"] = 10**5000  # even repr() of this one raises ValueError
+    problems = check_manifest(manifest)
+    assert _wheres(problems) == ["camera.pixel_size_um", "frames[1].azimuth_deg", "frames[2].kind"]
+    assert "a very large integer is not one of" in problems[2].message
