@@ -86,6 +86,7 @@ function setUploadProgress(sent, total, note) {
   $('upload-fill').style.width = `${total ? (100 * sent) / total : 0}%`;
   $('upload-label').textContent = `${formatBytes(sent)} of ${formatBytes(total)} — ${note}`;
   $('upload-progress').dataset.sent = String(sent);
+  if (note.startsWith('resuming')) $('upload-progress').dataset.resumedFrom = String(sent);
 }
 
 $('upload-form').addEventListener('submit', async (e) => {

@@ -47,7 +47,6 @@ const viewer = createViewer($('viewer'), {
 ui = bindViewerUi(viewer, {
   getHeightUrl: () => (currentModel?.assets?.['height.npy'] ? api.assetHref(currentModel.assets['height.npy']) : null),
   getPixelSizeUm: () => Number(currentModel?.report?.pixel_size_um) || null,
-  getImageWidth: () => Number(currentModel?.report?.image_size?.[0]) || null,
   baseName: () => (tablet?.designation ?? `tablet-${tabletId}`).replace(/[^\w.-]+/g, '_'),
 });
 // For the console and for tests: the page's viewer.

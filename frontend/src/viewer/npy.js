@@ -9,7 +9,11 @@ const DTYPES = {
   '<f4': Float32Array,
   '<f8': Float64Array,
   '|u1': Uint8Array,
+  '|i1': Int8Array,
+  '|b1': Uint8Array,
   '<u2': Uint16Array,
+  '<i2': Int16Array,
+  '<u4': Uint32Array,
   '<i4': Int32Array,
 };
 

@@ -18,7 +18,7 @@ const $ = (id) => document.getElementById(id);
 /**
  * @param {ReturnType<import('./viewer.js').createViewer>} viewer
  * @param {{getHeightUrl: () => string | null, getPixelSizeUm: () => number | null,
- *   getImageWidth: () => number | null, baseName: () => string}} context
+ *   baseName: () => string}} context
  */
 export function bindViewerUi(viewer, context) {
   const canvas = $('viewer');

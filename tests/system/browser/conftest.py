@@ -28,6 +28,12 @@ def pytest_collection_modifyitems(items):
 
 
 @pytest.fixture(scope="session")
+def server_module():
+    """server.py: constants such as STAFF_EMAIL and UPLOAD_CHUNK_BYTES."""
+    return server
+
+
+@pytest.fixture(scope="session")
 def library(tmp_path_factory):
     lib = server.start_library(tmp_path_factory.mktemp("library"))
     yield lib

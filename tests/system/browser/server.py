@@ -53,6 +53,7 @@ CHROMIUM_ARGS = [
 ]
 STAFF_EMAIL = "curator@example.org"
 STAFF_PASSWORD = "clay tablets are patient"
+UPLOAD_CHUNK_BYTES = 4096
 
 
 def free_port() -> int:
@@ -145,14 +146,40 @@ TABLETS = [
 ]
 
 
-def _seed(data_dir: Path, work: Path) -> tuple[dict, dict, ModelFacts]:
+def _add_model(factory, storage, *, tablet_id: int, face: str, label: str, model_dir: Path) -> int:
+    """A scan with a succeeded job whose model is ``model_dir``, stored like the worker does."""
+    from backend import jobs
+    from backend.db import session_scope
+    from backend.tables import Scan
+
+    with session_scope(factory) as session:
+        scan = Scan(
+            tablet_id=tablet_id,
+            face=face,
+            bundle_key=f"fixtures/{label}",
+            bundle_sha256="0" * 64,
+            size_bytes=0,
+            manifest={},
+        )
+        session.add(scan)
+        session.flush()
+        job = jobs.create(session, scan=scan)
+        session.commit()
+        jobs.mark_running(session, job_id=job.id)
+        model = jobs.mark_succeeded(session, job_id=job.id, model_dir=model_dir, storage=storage)
+        return model.id
+
+
+def _seed(
+    data_dir: Path, work: Path, extra_models: list[tuple[str, str, str, Path]]
+) -> tuple[dict, dict, ModelFacts]:
     """Migrate a fresh SQLite database and add an institution, a staff user, three tablets and
     two model versions of the first tablet's obverse (made through the job functions the
     worker uses, so they are stored exactly like real models)."""
-    from backend import crud, jobs
+    from backend import crud
     from backend.db import make_engine, make_sessionmaker, migrate, session_scope
     from backend.storage import LocalStorage
-    from backend.tables import Role, Scan
+    from backend.tables import Role
 
     url = f"sqlite:///{data_dir / 'hammurabi.db'}"
     migrate(url)
@@ -177,34 +204,36 @@ def _seed(data_dir: Path, work: Path) -> tuple[dict, dict, ModelFacts]:
             tablets[t.designation] = t.id
     first = tablets[TABLETS[0]["designation"]]
     for label in ("v1", "v2"):
-        with session_scope(factory) as session:
-            scan = Scan(
-                tablet_id=first,
-                face="obverse",
-                bundle_key=f"fixtures/{label}",
-                bundle_sha256="0" * 64,
-                size_bytes=0,
-                manifest={},
-            )
-            session.add(scan)
-            session.flush()
-            job = jobs.create(session, scan=scan)
-            session.commit()
-            jobs.mark_running(session, job_id=job.id)
-            model = jobs.mark_succeeded(
-                session, job_id=job.id, model_dir=work / f"model_{label}", storage=storage
-            )
-            models[label] = model.id
+        models[label] = _add_model(
+            factory,
+            storage,
+            tablet_id=first,
+            face="obverse",
+            label=label,
+            model_dir=work / f"model_{label}",
+        )
+    for label, designation, face, model_dir in extra_models:
+        models[label] = _add_model(
+            factory,
+            storage,
+            tablet_id=tablets[designation],
+            face=face,
+            label=label,
+            model_dir=model_dir,
+        )
     engine.dispose()
     return tablets, models, facts
 
 
-def start_library(tmp: Path) -> Library:
-    """Seed a data directory under ``tmp`` and serve it (API + built frontend)."""
+def start_library(tmp: Path, *, extra_models: list | None = None) -> Library:
+    """Seed a data directory under ``tmp`` and serve it (API + built frontend).
+
+    ``extra_models``: (label, tablet designation, face, model directory) to add, e.g. a real
+    reconstruction for the documentation's screenshots."""
     dist = ensure_frontend_built()
     data_dir = tmp / "data"
     data_dir.mkdir(parents=True)
-    tablets, models, facts = _seed(data_dir, tmp)
+    tablets, models, facts = _seed(data_dir, tmp, extra_models or [])
     port = free_port()
     env = {
         **os.environ,
@@ -212,6 +241,10 @@ def start_library(tmp: Path) -> Library:
         "HAMMURABI_DATA_DIR": str(data_dir),
         "HAMMURABI_FRONTEND_DIST": str(dist),
         "HAMMURABI_SECRET_KEY": "browser-tests-" + "k" * 40,
+        # small chunks, so that a test bundle of a few kB is a resumable multi-chunk upload
+        "HAMMURABI_UPLOAD_CHUNK_SIZE_BYTES": str(UPLOAD_CHUNK_BYTES),
+        # a broker nobody listens on: enqueueing fails at once and the job says why
+        "HAMMURABI_BROKER_URL": f"redis://127.0.0.1:{free_port()}/0",
     }
     log = open(tmp / "server.log", "wb")  # noqa: SIM115 - lives as long as the server
     process = subprocess.Popen(

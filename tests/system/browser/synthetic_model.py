@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import pygltflib
 from PIL import Image
+from scipy.ndimage import gaussian_filter
 
 WIDTH_PX = 480
 HEIGHT_PX = 320
@@ -173,8 +174,8 @@ def make_model_dir(out: Path, *, seed: int = 0, tint: float = 0.0) -> ModelFacts
 
     # albedo: warm clay with a little mottling; tint shifts it so two versions differ
     base = np.array([0.72 + tint, 0.58, 0.44 - tint])
-    mottle = 0.05 * rng.standard_normal((HEIGHT_PX // 8, WIDTH_PX // 8))
-    mottle = np.kron(mottle, np.ones((8, 8)))[:HEIGHT_PX, :WIDTH_PX]
+    mottle = gaussian_filter(rng.standard_normal((HEIGHT_PX, WIDTH_PX)), 6.0)
+    mottle *= 0.04 / mottle.std()
     albedo = np.clip(base[None, None, :] + mottle[..., None], 0, 1)
     albedo_png = np.round(albedo * 255).astype(np.uint8)
 
