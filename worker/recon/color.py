@@ -40,36 +40,25 @@ class ColorResult:
     fallback: np.ndarray
 
 
-def _lower_nanmedian0(x: np.ndarray) -> np.ndarray:
-    """Lower median over axis 0 ignoring NaN, by one sort (np.nanmedian is much slower)."""
-    srt = np.sort(x, axis=0)  # NaN sorts last
-    cnt = np.isfinite(x).sum(axis=0)
-    lo = np.take_along_axis(srt, np.clip((cnt - 1) // 2, 0, None)[None], axis=0)[0]
-    return np.where(cnt > 0, lo, np.nan)
-
-
 def _consensus_centre(est: np.ndarray, band: float) -> np.ndarray:
     """Per pixel, the sample with the most samples within ±band of it (relative).
 
-    A mode rather than a mean or median: a cast shadow (≈ 0) and a highlight (far above)
-    each agree with nobody, whereas clean samples agree with each other.  Ties are broken
-    toward the lower median of the samples, so that with one clean sample and one highlight
-    the clean one wins.  est : (A, N) with NaN for unusable samples.
+    A mode rather than a mean or median: a cast shadow and a highlight each agree with
+    nobody, whereas clean samples agree with each other.  Ties go to the lower estimate, so
+    that with one clean sample and one highlight the clean one wins (shadows were already
+    dropped as too dark).  est : (A, N) with NaN for unusable samples.
     """
     finite = np.isfinite(est)
-    lower_med = _lower_nanmedian0(est)
     best = np.full(est.shape[1], np.nan, dtype=np.float32)
-    best_key = np.full(est.shape[1], -np.inf)
+    best_support = np.zeros(est.shape[1], dtype=np.int64)
     for j in range(est.shape[0]):
         c = est[j]
-        support = (finite & (np.abs(est - c[None, :]) <= band * np.abs(c)[None, :])).sum(axis=0)
         with np.errstate(invalid="ignore"):
-            closeness = np.abs(c - lower_med) / (np.abs(lower_med) + 1e-12)
-        # Support dominates; closeness (< 1 after the squash) only breaks ties.
-        key = np.where(finite[j], support - closeness / (1.0 + closeness), -np.inf)
-        better = key > best_key
+            near = np.abs(est - c[None, :]) <= band * c[None, :]
+        support = np.where(finite[j], (near & finite).sum(axis=0), 0)
+        better = (support > best_support) | ((support == best_support) & (support > 0) & (c < best))
         best = np.where(better, c, best)
-        best_key = np.where(better, key, best_key)
+        best_support = np.where(better, support, best_support)
     return best
 
 
