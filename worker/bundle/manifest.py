@@ -322,7 +322,7 @@ def _check_scan(c: _Checker, value: dict) -> None:
     tablet = c.obj(scan, "tablet", "scan.tablet", required=False)
     for key, item in (tablet or {}).items():
         if not isinstance(item, str):
-            shown = key if len(key) <= 40 else key[:37] + "..."
+            shown = str(key) if len(str(key)) <= 40 else str(key)[:37] + "..."
             c.add(f"scan.tablet.{shown}", f"must be a string, not {_type_name(item)}")
 
 

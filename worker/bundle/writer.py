@@ -21,7 +21,12 @@ import numpy as np
 
 from worker.bundle.errors import BundleError, Problem
 from worker.bundle.images import cv2, value_problem
-from worker.bundle.manifest import MANIFEST_NAME, build_manifest, check_manifest
+from worker.bundle.manifest import (
+    MANIFEST_NAME,
+    build_manifest,
+    check_manifest,
+    parse_manifest_json,
+)
 from worker.bundle.matching import check_frames
 from worker.bundle.paths import normalize_path, path_problem
 
@@ -131,14 +136,15 @@ def write_bundle(
     if not problems:
         try:
             text = json.dumps(value, indent=2, ensure_ascii=False, allow_nan=False)
-            text.encode("utf-8")
+            manifest_bytes = (text + "\n").encode("utf-8")
         except (TypeError, ValueError) as exc:  # UnicodeEncodeError is a ValueError
             problems.append(Problem("manifest", f"cannot be written as strict JSON: {exc}"))
+        else:  # e.g. keys 1 and "1" both become "1": read it back as the reader will
+            problems += parse_manifest_json(manifest_bytes)[1]
     if problems:
         raise BundleError(problems)
     if (out.exists() or out.is_symlink()) and not overwrite:
         raise FileExistsError(f"out: {out} exists (pass overwrite=True to replace it)")
-    manifest_bytes = (text + "\n").encode("utf-8")
     items = sorted(((normalize_path(k), a) for k, a in images.items()), key=lambda item: item[0])
     tmp = out.with_name(f".{out.name}.tmp-{uuid.uuid4().hex}")
     try:

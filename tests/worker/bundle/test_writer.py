@@ -104,6 +104,9 @@ def test_nan_or_lone_surrogate_in_an_extra_field_is_refused(tmp_path, valid_bund
     manifest["scan"]["note"] = "\ud800"
     with pytest.raises(BundleError, match="strict JSON"):
         write_bundle(tmp_path / "b", manifest, images)
+    manifest["scan"]["note"] = {1: "a", "1": "b"}  # both keys become "1" in JSON
+    with pytest.raises(BundleError, match="duplicate key '1'"):
+        write_bundle(tmp_path / "b", manifest, images)
     assert list(tmp_path.iterdir()) == []
 
 
