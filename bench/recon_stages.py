@@ -69,7 +69,7 @@ def main() -> None:
 
     periods = 34304.0 / (0.25 * 2.0 ** np.arange(10))
     heights, weights = [], []
-    phase_rows = {"four_step_phase (80 sets)": 0.0, "carre_phase (80 sets)": 0.0}
+    phase_rows = {"four_step_phase (80 sets)": [0.0, 0.0], "carre_phase (80 sets)": [0.0, 0.0]}
     for a in (0.0, 90.0, 180.0, 270.0):
         diffs, mods = [], []
         for p in periods:
@@ -84,13 +84,17 @@ def main() -> None:
             fr = np.stack(
                 [0.5 * (1 + 0.85 * np.cos(psi_ref + d)) for d in np.deg2rad([0, 90, 180, 270])]
             )
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             o, r = four_step_phase(fo), four_step_phase(fr)
-            phase_rows["four_step_phase (80 sets)"] += time.perf_counter() - t
-            t = time.perf_counter()
+            row = phase_rows["four_step_phase (80 sets)"]
+            row[0] += time.perf_counter() - t
+            row[1] += time.process_time() - c
+            t, c = time.perf_counter(), time.process_time()
             carre_phase(fo)
             carre_phase(fr)
-            phase_rows["carre_phase (80 sets)"] += time.perf_counter() - t
+            row = phase_rows["carre_phase (80 sets)"]
+            row[0] += time.perf_counter() - t
+            row[1] += time.process_time() - c
             diffs.append(phase_difference(o.phase_rad, r.phase_rad))
             mods.append(np.minimum(o.modulation, r.modulation))
         un = timed(
@@ -102,8 +106,8 @@ def main() -> None:
         )
         heights.append(height_from_phase(un.dpsi_rad, period_um=periods[-1], polar_deg=45.0))
         weights.append(un.weight)
-    for name, wall in phase_rows.items():
-        ROWS.append((name, wall, float("nan"), float("nan")))
+    for name, (wall, cpu) in phase_rows.items():
+        ROWS.append((name, wall, cpu, float("nan")))
     comb = timed("combine_azimuths (A=4)", combine_azimuths, np.stack(heights), np.stack(weights))
     holes = comb.height_um.copy()
     holes[rng.uniform(size=holes.shape) < 0.01] = np.nan

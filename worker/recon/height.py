@@ -53,14 +53,15 @@ def height_from_phase(dpsi_rad: np.ndarray, *, period_um: float, polar_deg: floa
 
 def _weighted_median(values: np.ndarray, weight: np.ndarray) -> np.ndarray:
     """Per-column weighted median of (A, N) values; weight 0 or NaN values are ignored."""
-    w = np.where(np.isfinite(values), weight, 0.0)
-    key = np.where(w > 0, values, np.inf)
-    order = np.argsort(key, axis=0)
-    v = np.take_along_axis(key, order, axis=0)
-    cw = np.cumsum(np.take_along_axis(w, order, axis=0), axis=0)
-    total = cw[-1]
-    idx = np.argmax(cw >= 0.5 * total[None, :], axis=0)
-    med = np.take_along_axis(v, idx[None, :], axis=0)[0]
+    # Rows of A contiguous values sort far faster than strided columns.
+    w = np.ascontiguousarray(np.where(np.isfinite(values), weight, 0.0).T)
+    key = np.ascontiguousarray(np.where(w.T > 0, values, np.inf).T)
+    order = np.argsort(key, axis=1)
+    v = np.take_along_axis(key, order, axis=1)
+    cw = np.cumsum(np.take_along_axis(w, order, axis=1), axis=1)
+    total = cw[:, -1]
+    idx = np.argmax(cw >= 0.5 * total[:, None], axis=1)
+    med = np.take_along_axis(v, idx[:, None], axis=1)[:, 0]
     return np.where(total > 0, med, np.nan)
 
 
