@@ -105,7 +105,7 @@ def encode_image(path: str, array: np.ndarray) -> bytes:
         if not ok:  # pragma: no cover - OpenCV fails only on unsupported dtypes, excluded above
             raise RuntimeError(f"OpenCV could not encode {path}")
         return encoded.tobytes()
-    from PIL import Image  # pragma: no cover - installs without the worker extra
+    from PIL import Image  # installs without the worker extra
 
     buf = io.BytesIO()
     Image.fromarray(array).save(buf, format="PNG", compress_level=PNG_COMPRESSION)

@@ -90,3 +90,15 @@ def test_value_problem() -> None:
     assert value_problem(np.array([[255]], np.uint8), bit_depth=8) is None
     assert value_problem(np.array([[1.5, -2.0]], np.float32), bit_depth=12) is None
     assert "1 NaN" in value_problem(np.array([[np.nan, 0]], np.float32), bit_depth=12)
+
+
+def test_without_opencv_pillow_reads_and_writes(monkeypatch) -> None:
+    from worker.bundle import images, writer
+
+    values = np.arange(20 * 9, dtype=np.uint16).reshape(20, 9) * 300
+    with_cv2 = encode_image("x.png", values)
+    monkeypatch.setattr(images, "cv2", None)
+    monkeypatch.setattr(writer, "cv2", None)
+    with_pillow = encode_image("x.png", values)
+    for data in (with_cv2, with_pillow):
+        np.testing.assert_array_equal(decode(data, png_info(data[:33])), values)
