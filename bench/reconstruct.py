@@ -1,0 +1,148 @@
+"""Reconstruction benchmark: speed, memory and accuracy of the four surfaces.
+
+    .venv/bin/python bench/reconstruct.py [--preset paper] [--seeds 0] [--noise default]
+                                          [--size WxH] [--work DIR]
+
+For each seed: simulate a scan (worker.simulate; kept in --work to be reused), then
+1. decode: the time to decode every image of the bundle to radiance (the floor);
+2. the whole pipeline (`reconstruct_bundle`, default fusion) in a child process: time per
+   stage, total, and the child's peak resident memory (getrusage ru_maxrss);
+3. accuracy (worker.recon.evaluate) and fusion time of the four surfaces: fringe heights
+   alone (5×5 median), normals integrated alone, the paper's fusion, the default fusion.
+Prints markdown tables (docs/benchmarks.md keeps the last run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from worker.bundle import open_bundle  # noqa: E402
+from worker.measure import measure_bundle  # noqa: E402
+from worker.pipeline import _mask, reconstruct_bundle, surface_of  # noqa: E402
+from worker.recon.evaluate import evaluate  # noqa: E402
+from worker.simulate import simulate_scan  # noqa: E402
+
+SURFACES = [
+    ("fringe heights alone (5×5 median)", "default", "fringe"),
+    ("normals integrated alone", "default", "normals"),
+    ("paper fusion (Kumar 2003)", "paper", "fused"),
+    ("default fusion (weighted LSQ)", "default", "fused"),
+]
+
+
+def simulate(work: Path, *, seed: int, preset: str, noise: str, size) -> Path:
+    tag = f"{preset}-{noise}-s{seed}" + (f"-{size[0]}x{size[1]}" if size else "")
+    out = work / tag
+    if not (out / "gt").exists():
+        simulate_scan(out, seed=seed, preset=preset, noise=noise, size=size)
+    return out
+
+
+def decode_time(bundle_path: Path) -> tuple[float, int]:
+    with open_bundle(bundle_path) as b:
+        frames = [f for f in b.frames if f.kind != "dark"]
+        t0 = time.perf_counter()
+        for i in range(0, len(frames), 8):
+            b.radiance_many(frames[i : i + 8])
+        return time.perf_counter() - t0, len(frames)
+
+
+def _child(bundle_path, out_dir, queue):
+    t0 = time.perf_counter()
+    report = reconstruct_bundle(bundle_path, out_dir)
+    wall = time.perf_counter() - t0
+    rss_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    queue.put({"timings": report["timings_s"], "wall": wall, "maxrss_mib": rss_kib / 1024})
+
+
+def pipeline_run(bundle_path: Path, out_dir: Path) -> dict:
+    ctx = mp.get_context("spawn")
+    queue = ctx.Queue()
+    proc = ctx.Process(target=_child, args=(str(bundle_path), str(out_dir), queue))
+    proc.start()
+    result = queue.get()
+    proc.join()
+    return result
+
+
+def accuracy(sim: Path) -> list[dict]:
+    gt = {k: np.load(sim / "gt" / f"{k}.npy") for k in ("height", "normals", "mask")}
+    wedges = json.loads((sim / "gt" / "wedges.json").read_text())["wedges"]
+    with open_bundle(sim / "bundle") as b:
+        meas = measure_bundle(b, progress=lambda s, f: None)
+    mask = _mask(meas)
+    rows = []
+    for label, fusion, surface in SURFACES:
+        t0 = time.perf_counter()
+        h, n, _ = surface_of(meas, mask, fusion=fusion, surface=surface)
+        dt = time.perf_counter() - t0
+        m = mask & np.isfinite(h)
+        figs = evaluate(
+            h,
+            n,
+            m,
+            gt_height_um=gt["height"],
+            gt_normals=gt["normals"],
+            gt_mask=gt["mask"],
+            wedges=wedges,
+        )
+        rows.append({"surface": label, "time_s": dt, **figs})
+    return rows
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--preset", default="paper")
+    p.add_argument("--noise", default="default")
+    p.add_argument("--seeds", default="0")
+    p.add_argument("--size", default=None, help="WIDTHxHEIGHT (default: the preset's)")
+    p.add_argument("--work", default=None, help="folder for simulated scans (kept)")
+    p.add_argument("--no-speed", action="store_true", help="accuracy table only")
+    args = p.parse_args(argv)
+    size = tuple(int(v) for v in args.size.split("x")) if args.size else None
+    work = Path(args.work or tempfile.mkdtemp(prefix="bench-recon-"))
+    work.mkdir(parents=True, exist_ok=True)
+    seeds = [int(s) for s in args.seeds.split(",")]
+    print(f"preset {args.preset}, noise {args.noise}, seeds {seeds}, size {size or 'preset'}")
+    for seed in seeds:
+        sim = simulate(work, seed=seed, preset=args.preset, noise=args.noise, size=size)
+        if not args.no_speed:
+            dec, nframes = decode_time(sim / "bundle")
+            run = pipeline_run(sim / "bundle", work / f"model-s{seed}")
+            t = run["timings"]
+            print(f"\n### Speed and memory, seed {seed} ({nframes} images)\n")
+            print("| stage | seconds |\n|---|---|")
+            for k, v in t.items():
+                print(f"| {k} | {v:.2f} |")
+            print(f"| decode only (all images) | {dec:.2f} |")
+            print(
+                f"\ntotal / decode = {t['total'] / dec:.2f}; peak RSS {run['maxrss_mib']:.0f} MiB"
+            )
+        rows = accuracy(sim)
+        print(f"\n### Accuracy, seed {seed}\n")
+        print(
+            "| surface | coverage | height MAE µm | height RMS µm | normal median ° "
+            "| wedge depth MAE µm | surface time s |\n|---|---|---|---|---|---|---|"
+        )
+        for r in rows:
+            print(
+                f"| {r['surface']} | {100 * r['coverage']:.2f} % | {r['height_mae_um']:.2f} "
+                f"| {r['height_rms_um']:.2f} | {r['normal_median_deg']:.2f} "
+                f"| {r['wedge_depth_mae_um']:.2f} ({r['wedges']}) | {r['time_s']:.2f} |"
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
