@@ -234,7 +234,37 @@ def complete_upload(
     Raises ApiError: 409 (bytes missing, upload refused before), 422 (checksum or bundle
     problems: nothing kept); StorageError (507/503) leaves the upload open to try again.
     """
-    from worker.bundle import open_bundle, validate_bundle
+    upload_id = upload.id
+    try:
+        return _complete(
+            session,
+            upload=upload,
+            sha256=sha256,
+            uploads_dir=uploads_dir,
+            storage=storage,
+            user=user,
+        )
+    except (StaleDataError, FileNotFoundError):
+        # A concurrent completion of this very upload won the race: answer with its result.
+        session.rollback()
+        upload = session.get(Upload, upload_id, populate_existing=True)
+        if upload is not None and upload.state == UploadState.complete:
+            return _existing(session, upload)
+        raise ApiError(
+            409, f"upload {upload_id} was completed or refused at the same time; see its state"
+        ) from None
+
+
+def _complete(
+    session: Session,
+    *,
+    upload: Upload,
+    sha256: str,
+    uploads_dir: Path,
+    storage: Storage,
+    user: User,
+) -> Completion:
+    from worker.bundle import BundleError, open_bundle, validate_bundle
 
     if upload.state == UploadState.complete:
         return _existing(session, upload)
@@ -263,6 +293,8 @@ def complete_upload(
             ),
         )
     problems = validate_bundle(path)
+    if problems and not path.exists():
+        raise FileNotFoundError(path)  # completed concurrently, which removed the part file
     if problems:
         shown = [
             {"where": p.where, "message": p.message.replace(str(path), upload.filename)}
@@ -275,8 +307,13 @@ def complete_upload(
             problems=shown,
         )
         raise _refuse(session, upload, path, error)
-    with open_bundle(path) as bundle:
-        scan_meta = bundle.manifest.scan
+    try:
+        with open_bundle(path) as bundle:
+            scan_meta = bundle.manifest.scan
+    except BundleError:
+        if not path.exists():
+            raise FileNotFoundError(path) from None
+        raise
     if scan_meta.id:
         existing = session.scalar(select(Scan).where(Scan.scan_uid == scan_meta.id))
         if existing is not None:
@@ -324,7 +361,9 @@ def _create_scan(
     scan_meta,
 ) -> Completion:
     upload_id = upload.id
-    key = f"scans/{upload.tablet_id}/{upload.id}/bundle.zip"
+    # A fresh key per attempt: a concurrent completion of the same upload never deletes
+    # the object that the winning attempt committed.
+    key = f"scans/{upload.tablet_id}/{upload.id}/{uuid.uuid4().hex[:12]}/bundle.zip"
     scan = Scan(
         tablet_id=upload.tablet_id,
         face=scan_meta.face,
@@ -359,6 +398,17 @@ def _create_scan(
         upload.sha256 = sha
         upload.storage_key = key
         session.commit()
+    except ValueError:
+        session.rollback()
+        if not path.exists():  # completed concurrently, which removed the part file
+            raise FileNotFoundError(path) from None
+        raise
+    except StaleDataError:
+        # The same upload was completed concurrently and that attempt committed first.
+        session.rollback()
+        with contextlib.suppress(StorageError):
+            storage.delete(key)
+        return _existing(session, session.get(Upload, upload_id))
     except BaseException:
         session.rollback()
         with contextlib.suppress(StorageError):

@@ -126,7 +126,7 @@ def make_model(db_url: str, storage_dir: Path, scan_id: int, work: Path, glb_mib
     return model_id
 
 
-def start_server(port: int, env: dict[str, str]) -> subprocess.Popen:
+def start_server(port: int, env: dict[str, str], http: str) -> subprocess.Popen:
     cmd = [
         sys.executable,
         "-m",
@@ -139,6 +139,8 @@ def start_server(port: int, env: dict[str, str]) -> subprocess.Popen:
         str(port),
         "--log-level",
         "warning",
+        "--http",
+        http,
     ]
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env)
     deadline = time.monotonic() + 60
@@ -208,6 +210,12 @@ def main() -> None:
     parser.add_argument("--chunk-mib", type=int, default=8)
     parser.add_argument("--glb-mib", type=int, default=64)
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument(
+        "--http", default="auto", choices=["auto", "h11", "httptools"], help="uvicorn's parser"
+    )
+    parser.add_argument(
+        "--bundle", type=Path, default=None, help="reuse this bundle ZIP instead of making one"
+    )
     args = parser.parse_args()
     chunk = args.chunk_mib << 20
 
@@ -217,9 +225,10 @@ def main() -> None:
         db_url = f"sqlite:///{data_dir / 'bench.db'}"
         token, tablet_id = prepare(data_dir, db_url)
         t0 = time.perf_counter()
-        data = make_bundle(work / "bundle.zip", target_mb=args.bundle_mb).read_bytes()
-        print(f"made a {len(data) / 1e6:.0f} MB bundle in {time.perf_counter() - t0:.1f} s")
-        parts = complete_parts(work / "bundle.zip", work / "parts-store")
+        bundle = args.bundle or make_bundle(work / "bundle.zip", target_mb=args.bundle_mb)
+        data = bundle.read_bytes()
+        print(f"{len(data) / 1e6:.0f} MB bundle ready in {time.perf_counter() - t0:.1f} s")
+        parts = complete_parts(bundle, work / "parts-store")
         port = free_port()
         env = dict(
             os.environ,
@@ -231,7 +240,7 @@ def main() -> None:
             HAMMURABI_FRONTEND_DIST=str(work / "no-frontend"),
             HAMMURABI_UPLOAD_MAX_BYTES=str(10 * len(data)),
         )
-        server = start_server(port, env)
+        server = start_server(port, env, args.http)
         rows = []
         try:
             headers = {"Authorization": f"Bearer {token}"}
@@ -263,7 +272,10 @@ def main() -> None:
         finally:
             server.terminate()
             server.wait(timeout=30)
-    print(f"\nbest of {args.repeat} runs, loopback, uvicorn (1 process), SQLite, local storage\n")
+    print(
+        f"\nbest of {args.repeat} runs, loopback, uvicorn (1 process, --http {args.http}), "
+        "SQLite, local storage\n"
+    )
     print("| operation | time (s) | throughput (MB/s) |")
     print("|---|---:|---:|")
     for name, seconds, mb in rows:

@@ -78,3 +78,52 @@ def test_upload_state_visible_to_editors(client, world, role):
     response = client.get(f"{API}/uploads/{upload_id}", headers=world.headers(role))
     assert response.status_code == 200
     assert response.json()["missing"] == [[0, 3]]
+
+
+@pytest.mark.parametrize("scan_uid", [None, "rig-race"])
+def test_two_completions_of_one_upload_make_one_scan(client, world, app, tmp_path, scan_uid):
+    """A client that times out and asks again while the first completion still runs."""
+    from sqlalchemy import select
+
+    from backend.storage import LocalStorage
+    from backend.tables import Scan, User
+    from backend.uploads import complete_upload
+
+    data = helpers.bundle_bytes(tmp_path, scan_id=scan_uid)
+    upload_id = helpers.create(client, world, data).json()["id"]
+    helpers.put(client, world, upload_id, 0, data)
+    store = LocalStorage(app.state.settings.resolved_storage_dir)
+    factory = app.state.sessionmaker
+    barrier = threading.Barrier(2)
+    results, errors = [], []
+
+    def finish() -> None:
+        with factory() as session:
+            upload = session.get(Upload, upload_id)
+            user = session.get(User, world.users["staff_own"])
+            barrier.wait()
+            try:
+                done = complete_upload(
+                    session,
+                    upload=upload,
+                    sha256=hashlib.sha256(data).hexdigest(),
+                    uploads_dir=app.state.settings.data_dir / "uploads",
+                    storage=store,
+                    user=user,
+                )
+                results.append((done.scan.id, done.job.id, done.created))
+            except Exception as exc:  # reported below
+                errors.append(exc)
+
+    threads = [threading.Thread(target=finish) for _ in range(2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert errors == []
+    assert len({(scan, job) for scan, job, _ in results}) == 1
+    assert sorted(created for *_, created in results) == [False, True]
+    with factory() as session:
+        (scan,) = session.scalars(select(Scan)).all()
+        assert store.list("scans/") == [scan.bundle_key]
+        assert store.read_bytes(scan.bundle_key) == data
