@@ -1,5 +1,7 @@
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from worker.recon.fringe import carre_phase, four_step_phase
 from worker.recon.height import height_from_phase
@@ -136,3 +138,18 @@ def test_simulated_bundle_heights_against_ground_truth(simulated_recon):
     # |e|/σ of a Gaussian: median 0.67, 99th percentile 2.6.
     assert np.nanmedian(z) < 1.5
     assert np.nanpercentile(z, 99) < 5.0
+
+
+@given(
+    h_frac=st.floats(-0.49, 0.49),
+    n_levels=st.integers(1, 9),
+    ratio=st.sampled_from([2.0, 3.0, 4.0]),
+)
+def test_temporal_unwrap_is_exact_without_noise(h_frac, n_levels, ratio):
+    # Any height within the spec's unambiguity limit |Δψ_0| < π comes back exactly.
+    periods = 1000.0 / ratio ** np.arange(n_levels)
+    dpsi0 = 2 * np.pi * h_frac
+    levels = np.array([dpsi0 * periods[0] / p for p in periods])[:, None, None]
+    res = temporal_unwrap(wrap_phase(levels), periods)
+    expected = dpsi0 * periods[0] / periods[-1]
+    np.testing.assert_allclose(res.dpsi_rad[0, 0], expected, rtol=1e-5, atol=1e-3)
