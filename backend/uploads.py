@@ -20,6 +20,7 @@ import os
 import time
 import uuid
 from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 from sqlalchemy import select
@@ -416,3 +417,31 @@ def _create_scan(
         raise
     path.unlink(missing_ok=True)
     return Completion(scan=scan, job=job, created=True)
+
+
+def expire_uploads(
+    session: Session, *, uploads_dir: Path, older_than: timedelta, now: datetime | None = None
+) -> int:
+    """Delete uploads left open (or refused) for ``older_than``, with their part files.
+
+    Also removes part files that no upload row names (a crash between preallocating and
+    committing). Flushes; the caller commits. Returns how many uploads were deleted.
+    """
+    if older_than.total_seconds() <= 0:
+        raise ValueError(f"older_than must be positive, got {older_than}")
+    cutoff = (now or datetime.now(UTC)) - older_than
+    stale = session.scalars(
+        select(Upload).where(Upload.state != UploadState.complete, Upload.updated_at < cutoff)
+    ).all()
+    for upload in stale:
+        part_path(uploads_dir, upload.id).unlink(missing_ok=True)
+        session.delete(upload)
+    session.flush()
+    uploads_dir = Path(uploads_dir)
+    if uploads_dir.is_dir():
+        known = set(session.scalars(select(Upload.id)))
+        for part in uploads_dir.glob("*.part"):
+            orphan = part.stem not in known
+            if orphan and datetime.fromtimestamp(part.stat().st_mtime, tz=UTC) < cutoff:
+                part.unlink(missing_ok=True)
+    return len(stale)

@@ -7,6 +7,7 @@ import errno
 import hashlib
 import io
 import json
+import os
 import random
 import zipfile
 from pathlib import Path
@@ -400,3 +401,26 @@ def test_full_storage_at_completion_keeps_the_upload_open(
     assert scans.json() == []
     # Space freed: completing again works, from the bytes already received.
     assert complete(client, world, upload_id, sha(data)).status_code == 201
+
+
+def test_expire_stale_uploads(client, world, app):
+    from datetime import UTC, datetime, timedelta
+
+    from backend.uploads import expire_uploads
+
+    uploads_dir = app.state.settings.data_dir / "uploads"
+    old_id = create(client, world, b"o" * 10).json()["id"]
+    fresh_id = create(client, world, b"f" * 10).json()["id"]
+    orphan = uploads_dir / "00000000-0000-4000-8000-000000000001.part"
+    orphan.write_bytes(b"left by a crash")
+    os.utime(orphan, (0, 0))
+    with world.session() as session:
+        session.get(Upload, old_id).updated_at = datetime.now(UTC) - timedelta(days=8)
+    with world.session() as session:
+        with pytest.raises(ValueError, match="older_than"):
+            expire_uploads(session, uploads_dir=uploads_dir, older_than=timedelta(0))
+        assert expire_uploads(session, uploads_dir=uploads_dir, older_than=timedelta(days=7)) == 1
+    headers = world.headers("staff_own")
+    assert client.get(f"{API}/uploads/{old_id}", headers=headers).status_code == 404
+    assert client.get(f"{API}/uploads/{fresh_id}", headers=headers).status_code == 200
+    assert sorted(p.name for p in uploads_dir.iterdir()) == [f"{fresh_id}.part"]
