@@ -102,3 +102,34 @@ def test_fill_holes_without_any_rim_stays_nan():
     assert np.all(np.isnan(out[2:4, 2:4]))
     with pytest.raises(ValueError, match="mask"):
         fill_holes(z, mask.astype(int))
+
+
+@pytest.mark.parametrize("azimuth_deg", [0.0, 90.0, 210.0])
+def test_fringe_chain_follows_the_spec_geometry(azimuth_deg):
+    from worker.recon.fringe import four_step_phase
+    from worker.recon.unwrap import phase_difference
+
+    # Straight from SCAN_BUNDLE.md: the ray reaching (p, −h) crosses the reference plane at
+    # p′ = p − h·tanθ·u and carries cos(2π (u·p′)/P + δ); the reference target sees p′ = p.
+    s_um, period, theta = 20.0, 900.0, 35.0
+    rows, cols = np.mgrid[0:24, 0:32]
+    px, py = cols * s_um, rows * s_um
+    h = 150.0 * np.sin(px / 200.0) + 0.5 * py  # |h| < P/(2 tanθ): no unwrapping needed
+    phi = np.deg2rad(azimuth_deg)
+    u = (np.sin(phi), np.cos(phi))
+    shift = h * np.tan(np.deg2rad(theta))
+
+    def frames(hshift):
+        up = u[0] * (px - hshift * u[0]) + u[1] * (py - hshift * u[1])
+        return np.stack(
+            [
+                0.4 * (1 + 0.8 * np.cos(2 * np.pi * up / period + d))
+                for d in np.deg2rad([0, 90, 180, 270])
+            ]
+        )
+
+    dpsi = phase_difference(
+        four_step_phase(frames(shift)).phase_rad, four_step_phase(frames(0.0)).phase_rad
+    )
+    est = height_from_phase(dpsi, period_um=period, polar_deg=theta)
+    np.testing.assert_allclose(est, h, atol=0.05)
