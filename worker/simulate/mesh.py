@@ -37,12 +37,16 @@ def _cube_sphere(n: int) -> tuple[np.ndarray, np.ndarray]:
     )
     for k, f in enumerate(faces_xyz):
         p = f.reshape(-1, 3)
-        dirs.append(p / np.linalg.norm(p, axis=1, keepdims=True))
-        tris.append(quad + k * n * n)
+        unit = p / np.linalg.norm(p, axis=1, keepdims=True)
+        # Wind each cube face so that right-hand normals point away from the centre.
+        a0, b0, c0 = unit[quad[0]]
+        flip = np.cross(b0 - a0, c0 - a0) @ (a0 + b0 + c0) < 0
+        dirs.append(unit)
+        tris.append((quad[:, ::-1] if flip else quad) + k * n * n)
     return np.concatenate(dirs), np.concatenate(tris)
 
 
-def tablet_mesh(tablet: Tablet, *, resolution: int = 160) -> trimesh.Trimesh:
+def tablet_mesh(tablet: Tablet, *, resolution: int = 128) -> trimesh.Trimesh:
     """Closed mesh of the tablet in mm (tablet frame), about 6·resolution² vertices."""
     if resolution < 4:
         raise ValueError("resolution must be >= 4")
@@ -51,16 +55,22 @@ def tablet_mesh(tablet: Tablet, *, resolution: int = 160) -> trimesh.Trimesh:
     origins = dirs * far
     cav = tablet.cavities
 
+    # Rays run along lines through the origin: the line along d passes within r of a cavity
+    # centre c when (d·c)² >= |c|² - r², on c's side of the origin when d·c > 0.
+    lists: list[np.ndarray] = []
+    for k0 in range(0, len(cav), 64):
+        centres = cav.centres_um[k0 : k0 + 64]
+        along = (dirs @ centres.T).astype(np.float32)
+        reach = np.sum(centres**2, axis=1) - cav.radii_um[k0 : k0 + 64] ** 2
+        near = (along > 0) & (along * along >= reach) | (reach <= 0)
+        lists += [np.flatnonzero(near[:, j]) for j in range(near.shape[1])]
+
     def candidates(i: int) -> np.ndarray:
-        c = cav.centres_um[i]
-        along = dirs @ c
-        off = np.linalg.norm(c[None, :] - along[:, None] * dirs, axis=1)
-        return np.flatnonzero(off <= cav.radii_um[i])
+        return lists[i]
 
     hits = cast_rays(tablet.pillow, cav, origins, -dirs, candidates)
     t = np.where(hits.hit, hits.t_um, far)
     verts_um = origins - t[:, None] * dirs
-    mesh = trimesh.Trimesh(verts_um / 1000.0, tris, process=True)
+    mesh = trimesh.Trimesh(verts_um / 1000.0, tris, process=False)
     mesh.merge_vertices()
-    trimesh.repair.fix_normals(mesh)
     return mesh

@@ -82,10 +82,11 @@ class Pillow:
     def sdf_and_slope(
         self, points: np.ndarray, direction: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """f (N,) and its derivative along the unit ``direction`` (3,), for Newton steps."""
+        """f (N,) and its derivative along unit ``direction`` ((3,) or (N, 3)), for Newton steps."""
         arg = (points @ self.wave_vectors.T + self.phases).astype(np.float32)
         rough = np.sin(arg) @ self.amplitudes_um
-        rough_slope = np.cos(arg) @ (self.amplitudes_um * (self.wave_vectors @ direction))
+        along = direction @ self.wave_vectors.T  # (K,) or (N, K)
+        rough_slope = np.sum(np.cos(arg) * (self.amplitudes_um * along), axis=-1)
         eps = 0.5
         smooth_slope = (
             self.smooth_sdf(points + eps * direction) - self.smooth_sdf(points - eps * direction)

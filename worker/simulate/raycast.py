@@ -108,11 +108,8 @@ def _newton_rough(
     for _ in range(steps):
         if idx.size == 0:
             break
-        if dirs.ndim == 1:
-            f, slope = pillow.sdf_and_slope(origins[idx] + t[idx, None] * dirs, dirs)
-        else:
-            f, g = pillow.sdf_and_gradient(origins[idx] + t[idx, None] * dirs[idx])
-            slope = np.sum(g * dirs[idx], axis=-1)
+        d = dirs if dirs.ndim == 1 else dirs[idx]
+        f, slope = pillow.sdf_and_slope(origins[idx] + t[idx, None] * d, d)
         # Grazing rays have tiny slopes; limit the step to the roughness scale.
         step = np.clip(-f / np.minimum(slope, -0.05), -50.0, 50.0)
         t[idx] += step

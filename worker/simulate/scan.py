@@ -163,13 +163,14 @@ def _simulate_face(
     noise: NoiseModel,
     as_zip: bool,
     progress: bool,
+    pose: np.ndarray | None = None,
 ) -> tuple[Path, Path, View, int]:
     from tqdm import tqdm
 
     preset = PRESETS[preset_name]
     width, height = size
     pixel = pixel_size_for(width, height)
-    pose = FACE_POSES[face]
+    pose = FACE_POSES[face] if pose is None else pose
     render = render_mesh_view if isinstance(tablet, MeshTablet) else render_view
     view = render(
         tablet,
@@ -194,7 +195,7 @@ def _simulate_face(
     )
     _check_fringe_range(view, preset.polar_deg, coarsest)
     files = [frame_file(f, i) for i, f in enumerate(frames)]
-    face_id = FACES.index(face)
+    face_id = [*FACES, "other"].index(face)
     images = {}
     for i, (frame, file) in enumerate(
         tqdm(
@@ -239,17 +240,28 @@ def simulate_scan(
     as_zip: bool = False,
     progress: bool = False,
     mesh: str | os.PathLike | None = None,
+    pose: np.ndarray | None = None,
 ) -> SimulationResult:
     """Simulate the scan of one face (or ``"all"`` six) of the synthetic tablet of ``seed``,
     or of the triangle mesh file ``mesh`` (mm, obverse toward -z; no wedges.json entries).
+
+    ``pose`` (3×3 rotation tablet→view) replaces the face's standard pose, for oblique views;
+    ``face`` then only labels the scan (``"other"`` is allowed).
 
     Refuses (FileExistsError) to overwrite an existing bundle or gt folder.
     """
     if preset not in PRESETS:
         raise ValueError(f"preset: unknown {preset!r}; choose from {sorted(PRESETS)}")
     faces = FACES if face == "all" else (face,)
-    if face != "all" and face not in FACE_POSES:
-        raise ValueError(f"face: unknown {face!r}; choose from {[*FACES, 'all']}")
+    labels = [*FACES, "other"] if pose is not None else list(FACES)
+    if face != "all" and face not in labels:
+        raise ValueError(f"face: unknown {face!r}; choose from {[*labels, 'all']}")
+    if pose is not None:
+        pose = np.asarray(pose, dtype=float)
+        if face == "all":
+            raise ValueError("pose: give one face (or 'other') with an explicit pose, not 'all'")
+        if pose.shape != (3, 3) or not np.allclose(pose @ pose.T, np.eye(3), atol=1e-6):
+            raise ValueError("pose: must be a 3×3 rotation matrix")
     model = noise if isinstance(noise, NoiseModel) else noise_model(noise)
     size = size or (PRESETS[preset].width, PRESETS[preset].height)
     out = Path(out_dir)
@@ -271,6 +283,7 @@ def simulate_scan(
             noise=model,
             as_zip=as_zip,
             progress=progress,
+            pose=pose,
         )
         n += k
     if face == "all":
