@@ -1,4 +1,4 @@
-"""The ``hammurabi`` command: serve, migrate, create-user, create-token, import-catalogue.
+"""The ``hammurabi`` command: serve, worker, migrate, create-user, create-token, import-catalogue.
 
 Settings come from the environment (``HAMMURABI_*``, see docs/admin.md). Every command that
 touches the database first brings it to the latest migration. Errors are one clear line on
@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import getpass
+import os
 import sys
 from pathlib import Path
 
@@ -67,6 +68,37 @@ def cmd_serve(args: argparse.Namespace) -> int:
     _migrated_sessionmaker(settings)
     uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level=args.log_level)
     return 0
+
+
+def cmd_worker(args: argparse.Namespace) -> int:
+    """Migrate, then become a Celery worker of ``worker.celery_app`` (exec: signals go to it).
+
+    Started by name: the library package never imports the numerical code.
+    """
+    settings = _settings()
+    _migrated_sessionmaker(settings)
+    argv = [
+        sys.executable,
+        "-m",
+        "celery",
+        "-A",
+        "worker.celery_app",
+        "worker",
+        "--queues",
+        settings.job_queue,
+        "--concurrency",
+        str(args.concurrency),
+        "--loglevel",
+        args.log_level,
+        "--without-gossip",
+        "--without-mingle",
+    ]
+    if args.hostname:
+        argv += ["--hostname", args.hostname]
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os.execv(sys.executable, argv)
+    return 0  # pragma: no cover (exec does not return)
 
 
 def _read_password(args: argparse.Namespace) -> str | None:
@@ -155,6 +187,14 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--port", type=int, default=8000)
     serve.add_argument("--log-level", default="info")
     serve.set_defaults(handler=cmd_serve)
+
+    work = commands.add_parser(
+        "worker", help="migrate, then run a reconstruction worker (Celery, worker.celery_app)"
+    )
+    work.add_argument("--concurrency", type=int, default=1, help="jobs at once (processes)")
+    work.add_argument("--log-level", default="info")
+    work.add_argument("--hostname", help="worker name, e.g. w1@%%h (default celery@<host>)")
+    work.set_defaults(handler=cmd_worker)
 
     commands.add_parser("migrate", help="bring the database to the latest schema").set_defaults(
         handler=cmd_migrate
