@@ -27,6 +27,7 @@ import numpy as np
 
 from worker.recon.integrate import (
     _bbox,
+    _label_stats,
     edge_targets_um,
     slopes_from_normals,
     solve_screened_poisson,
@@ -126,10 +127,10 @@ def _zero_mean_where_no_data(h, mask, has_data):
     labels, count = ndimage.label(mask)
     if count == 0:
         return h
-    index = np.arange(1, count + 1)
-    strong = ndimage.maximum(has_data, labels, index=index)
-    means = ndimage.mean(h, labels, index=index)
-    offset = np.concatenate([[0.0], np.where(strong, 0.0, means)]).astype(np.float32)
+    data_count = np.bincount(labels.ravel(), weights=has_data.ravel(), minlength=count + 1)
+    sums, counts = _label_stats(np.where(mask, h, 0), labels, count)
+    offset = np.where(data_count > 0, 0.0, sums / np.maximum(counts, 1)).astype(np.float32)
+    offset[0] = 0
     return h - offset[labels]
 
 
@@ -158,7 +159,7 @@ def _anchor_parts_without_data(mask, lam, wx, wy):
     labels, count = ndimage.label(mask)
     if count == 0:
         return lam
-    has_data = ndimage.maximum(lam > 0, labels, index=np.arange(1, count + 1))
+    has_data = np.bincount(labels.ravel(), weights=(lam > 0).ravel(), minlength=count + 1)[1:] > 0
     if np.all(has_data):
         return lam
     w_pix = np.zeros_like(lam)

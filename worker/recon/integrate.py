@@ -143,6 +143,11 @@ def solve_screened_poisson(
         raise ValueError(f"ty and wy must have shape {(rows - 1, cols)}")
     if np.any(wx < 0) or np.any(wy < 0):
         raise ValueError("wx and wy must be non-negative")
+    # The DCT is several times faster on lengths with small prime factors: pad the grid with
+    # unconstrained pixels (a separate block of the system, see below) and crop at the end.
+    fast = (fft.next_fast_len(rows, real=True), fft.next_fast_len(cols, real=True))
+    if fast != (rows, cols):
+        return _solve_padded(tx, ty, wx, wy, data_um, data_weight, x0_um, rtol, max_iter, fast)
     tx = np.where(wx > 0, np.nan_to_num(np.asarray(tx, np.float32)), np.float32(0))
     ty = np.where(wy > 0, np.nan_to_num(np.asarray(ty, np.float32)), np.float32(0))
     if data_weight is None:
@@ -211,6 +216,41 @@ def solve_screened_poisson(
         res = float(np.linalg.norm(r)) / b_norm
     h[free] = 0
     return ScreenedPoisson(height_um=h.astype(np.float32), iterations=it, relative_residual=res)
+
+
+def _solve_padded(tx, ty, wx, wy, data_um, data_weight, x0_um, rtol, max_iter, fast):
+    rows, cols = wy.shape[0] + 1, wx.shape[1] + 1
+    pr, pc = fast[0] - rows, fast[1] - cols
+
+    def pad(a, fill=0.0):
+        return (
+            None
+            if a is None
+            else np.pad(np.asarray(a, np.float32), ((0, pr), (0, pc)), constant_values=fill)
+        )
+
+    sol = solve_screened_poisson(
+        pad(tx),
+        pad(ty),
+        pad(wx),
+        pad(wy),
+        data_um=pad(data_um),
+        data_weight=pad(data_weight),
+        x0_um=pad(x0_um),
+        rtol=rtol,
+        max_iter=max_iter,
+    )
+    return ScreenedPoisson(
+        sol.height_um[:rows, :cols].copy(), sol.iterations, sol.relative_residual
+    )
+
+
+def _label_stats(values, labels, count):
+    """Per-label sums and counts (labels 1..count) via bincount: ndimage's are much slower."""
+    lab = labels.ravel()
+    sums = np.bincount(lab, weights=np.asarray(values, np.float64).ravel(), minlength=count + 1)
+    counts = np.bincount(lab, minlength=count + 1)
+    return sums, counts
 
 
 def masked_edge_weights(mask: np.ndarray, weight: np.ndarray | None = None):
@@ -296,6 +336,7 @@ def _zero_mean_per_component(h, mask):
     labels, n = ndimage.label(mask)
     if n == 0:
         return h
-    means = ndimage.mean(h, labels, index=np.arange(1, n + 1))
-    offset = np.concatenate([[0.0], means]).astype(np.float32)
+    sums, counts = _label_stats(np.where(mask, h, 0), labels, n)
+    offset = (sums / np.maximum(counts, 1)).astype(np.float32)
+    offset[0] = 0
     return h - offset[labels]
