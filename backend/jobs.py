@@ -35,6 +35,12 @@ from backend.tables import Job, JobKind, JobState, Model, Scan
 log = logging.getLogger("backend.jobs")
 
 RECONSTRUCT_TASK = "worker.tasks.reconstruct_scan"
+# Task name per job kind (worker.tasks); the library sends by name, never imports the worker.
+TASK_BY_KIND = {
+    JobKind.reconstruct: RECONSTRUCT_TASK,
+    JobKind.derive: "worker.tasks.derive_assets",
+    JobKind.register: "worker.tasks.register_tablet",
+}
 _DONE = (JobState.succeeded, JobState.failed)
 
 
@@ -86,7 +92,9 @@ class RecordingDispatcher:
 
 
 def dispatcher_from_settings(settings: Any) -> CeleryDispatcher:
-    return CeleryDispatcher(broker_url=settings.broker_url, queue=settings.job_queue)
+    from backend.queue import broker_url
+
+    return CeleryDispatcher(broker_url=broker_url(settings), queue=settings.job_queue)
 
 
 def _now() -> datetime:
@@ -130,7 +138,7 @@ def enqueue(job: Job, *, dispatcher: Dispatcher) -> str:
     Call only after the job row is committed (a fast worker must find it).
     """
     task_id = f"job-{job.id}-attempt-{job.attempts + 1}"
-    dispatcher.send_task(RECONSTRUCT_TASK, args=[job.id], task_id=task_id)
+    dispatcher.send_task(TASK_BY_KIND[job.kind], args=[job.id], task_id=task_id)
     return task_id
 
 
@@ -263,8 +271,9 @@ def mark_succeeded(
         raise LookupError(f"job {job.id}: its scan is gone")
     face = scan.face if scan is not None else None
     version = next_version(session, tablet_id=job.tablet_id, face=face)
-    # A fresh prefix per version: nothing ever overwrites a stored version.
-    prefix = f"models/{job.tablet_id}/{uuid.uuid4().hex}"
+    # Readable and unique (the uuid): two racing jobs of one face never share a prefix, and
+    # nothing ever overwrites a stored version.
+    prefix = f"models/{job.tablet_id}/{face or 'tablet'}/v{version}-{uuid.uuid4().hex[:12]}"
     stats = storage.put_tree(prefix, model_dir)
     try:
         assets = {

@@ -105,6 +105,8 @@ def test_a_rescan_adds_a_version_and_never_overwrites(world, store, tmp_path):
             versions.append((model.version, model.storage_prefix))
     assert [v for v, _ in versions] == [1, 2, 1]
     assert len({p for _, p in versions}) == 3
+    assert [p.split("/")[2:4][0] for _, p in versions] == ["obverse", "obverse", "top"]
+    assert [p.split("/")[3].split("-")[0] for _, p in versions] == ["v1", "v2", "v1"]
     assert store.read_bytes(f"{versions[0][1]}/model.glb") == b"glTF" + bytes(60)
     assert store.read_bytes(f"{versions[1][1]}/model.glb") == b"glTF second"
 
