@@ -207,6 +207,18 @@ export function bindViewerUi(viewer, context) {
       case 'projection':
         toggleProjection();
         break;
+      case 'zoom-in':
+        viewer.zoomBy(1.25);
+        break;
+      case 'zoom-out':
+        viewer.zoomBy(0.8);
+        break;
+      case 'turn-right':
+        viewer.orbitBy(15);
+        break;
+      case 'turn-left':
+        viewer.orbitBy(-15);
+        break;
       case 'measure':
         setTool('distance');
         break;

@@ -277,6 +277,34 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     }
   }
 
+  /** Zoom by a factor (> 1: closer), about the orbit target; for keyboard use. */
+  function zoomBy(factor) {
+    if (!(factor > 0)) throw new RangeError(`factor must be > 0, got ${factor}`);
+    if (camera.isOrthographicCamera) {
+      ortho.zoom *= factor;
+      ortho.updateProjectionMatrix();
+    } else {
+      const offset = persp.position.clone().sub(controls.target).divideScalar(factor);
+      persp.position.copy(controls.target).add(offset);
+      updateClipping();
+      updateProjection();
+    }
+    controls.update();
+    invalidate();
+    onChange('camera');
+  }
+
+  /** Turn the tablet about the screen's vertical axis through the target, in degrees. */
+  function orbitBy(degrees) {
+    const offset = camera.position.clone().sub(controls.target);
+    offset.applyAxisAngle(camera.up.clone().normalize(), (degrees * Math.PI) / 180);
+    camera.position.copy(controls.target).add(offset);
+    camera.lookAt(controls.target);
+    makeControls();
+    invalidate();
+    onChange('camera');
+  }
+
   function setProjection(projection) {
     if (projection !== 'orthographic' && projection !== 'perspective') {
       throw new RangeError(`projection must be orthographic or perspective, got ${projection}`);
@@ -533,6 +561,8 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     setShading,
     setView,
     setProjection,
+    zoomBy,
+    orbitBy,
     resetView: () => setView('obverse'),
     getState,
     setState,

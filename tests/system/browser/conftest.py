@@ -107,6 +107,8 @@ def tools():
         settle=settle,
         canvas_pixels=canvas_pixels,
         screen_of=screen_of,
+        render_pixels=render_pixels,
+        idle=idle,
     )
 
 
@@ -133,6 +135,11 @@ def settle(page) -> None:
     )
 
 
+def idle(page) -> None:
+    """Wait for lazily loaded maps only (enough before render_pixels, which draws itself)."""
+    page.evaluate("() => window.hammurabi.viewer.whenIdle()")
+
+
 def canvas_pixels(page):
     """The viewer canvas as an (H, W, 3) float array in [0, 1], as composited on screen."""
     import io
@@ -148,3 +155,25 @@ def screen_of(page, point_mm) -> tuple[float, float]:
     """Page (CSS pixel) position of a model point in mm, from the viewer's own camera."""
     p = page.evaluate("p => window.hammurabi.viewer.project(p)", list(point_mm))
     return p["x"], p["y"]
+
+
+def render_pixels(page, width: int = 360, height: int = 240):
+    """The current view rendered off-screen by the viewer's own screenshot() at a small size,
+    as an (H, W, 3) float array in [0, 1] (cheaper than a page screenshot in SwiftShader)."""
+    import base64
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    data_url = page.evaluate(
+        """async ([w, h]) => {
+        const blob = await window.hammurabi.viewer.screenshot({ width: w, height: h });
+        return await new Promise((resolve) => {
+          const r = new FileReader(); r.onload = () => resolve(r.result); r.readAsDataURL(blob);
+        });
+      }""",
+        [width, height],
+    )
+    png = base64.b64decode(data_url.split(",", 1)[1])
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.float64) / 255

@@ -170,19 +170,25 @@ def _add_model(factory, storage, *, tablet_id: int, face: str, label: str, model
         return model.id
 
 
-def _seed(
-    data_dir: Path, work: Path, extra_models: list[tuple[str, str, str, Path]]
-) -> tuple[dict, dict, ModelFacts]:
-    """Migrate a fresh SQLite database and add an institution, a staff user, three tablets and
-    two model versions of the first tablet's obverse (made through the job functions the
-    worker uses, so they are stored exactly like real models)."""
-    from backend import crud
-    from backend.db import make_engine, make_sessionmaker, migrate, session_scope
-    from backend.storage import LocalStorage
-    from backend.tables import Role
+def _migrate(data_dir: Path) -> str:
+    from backend.db import migrate
 
     url = f"sqlite:///{data_dir / 'hammurabi.db'}"
     migrate(url)
+    return url
+
+
+def _seed(
+    url: str, data_dir: Path, work: Path, extra_models: list[tuple[str, str, str, Path]]
+) -> tuple[dict, dict, ModelFacts]:
+    """Add an institution, a staff user, three tablets and two model versions of the first
+    tablet's obverse (made through the job functions the worker uses, so they are stored
+    exactly like real models) to the migrated database at ``url``."""
+    from backend import crud
+    from backend.db import make_engine, make_sessionmaker, session_scope
+    from backend.storage import LocalStorage
+    from backend.tables import Role
+
     engine = make_engine(url)
     factory = make_sessionmaker(engine)
     storage = LocalStorage(data_dir / "storage")
@@ -233,7 +239,7 @@ def start_library(tmp: Path, *, extra_models: list | None = None) -> Library:
     dist = ensure_frontend_built()
     data_dir = tmp / "data"
     data_dir.mkdir(parents=True)
-    tablets, models, facts = _seed(data_dir, tmp, extra_models or [])
+    db_url = _migrate(data_dir)
     port = free_port()
     env = {
         **os.environ,
@@ -267,7 +273,15 @@ def start_library(tmp: Path, *, extra_models: list | None = None) -> Library:
         stderr=subprocess.STDOUT,
     )
     url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 30
+    try:
+        # seeded while the server starts: both take seconds on a busy machine
+        tablets, models, facts = _seed(db_url, data_dir, tmp, extra_models or [])
+    except BaseException:
+        process.kill()
+        process.wait()
+        log.close()
+        raise
+    deadline = time.monotonic() + 60
     while True:
         try:
             if httpx.get(f"{url}/api/v1/health", timeout=1).status_code == 200:

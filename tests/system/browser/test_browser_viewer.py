@@ -73,11 +73,11 @@ def test_every_shading_mode_renders_differently(viewer_page, tools):
         "quality",
     ]:
         page.locator("#mode").select_option(mode)
-        tools.settle(page)
-        assert page.locator("#viewer").get_attribute("data-mode") == mode
+        tools.idle(page)
+        assert page.evaluate("window.hammurabi.viewer.shading.mode") == mode
         # every map of the fixture exists: no "missing texture" notice in any mode
         assert page.locator("#notice").is_hidden(), page.locator("#notice").inner_text()
-        images[mode] = tools.canvas_pixels(page)
+        images[mode] = tools.render_pixels(page)
     on_model = np.abs(images["clay"] - BACKGROUND).sum(axis=-1) > 0.05
     modes = list(images)
     for i, a in enumerate(modes):
