@@ -122,7 +122,13 @@ def search(
     fmt = _wanted_format(request, format)
     prefix = settings.api_prefix
     if fmt == "json":
-        result = search_tablets(session, query, user=user, facet_limit=settings.search_facet_limit)
+        result = search_tablets(
+            session,
+            query,
+            user=user,
+            facet_limit=settings.search_facet_limit,
+            snapshot=request.app.state.facet_snapshot,
+        )
         return SearchPage(
             items=[TabletOut.of(t, api_prefix=prefix) for t in result.items],
             total=result.total,

@@ -8,7 +8,8 @@ import json
 
 import pytest
 
-from backend.tables import Tablet
+from backend.search import FacetSnapshot, SearchQuery, search_tablets
+from backend.tables import Tablet, User
 
 RECORDS = [
     # designation, museum_no, period, genre, language, public, has_3d, publication, notes
@@ -145,3 +146,31 @@ def test_bad_parameters_name_the_culprit(client, params, where):
     response = client.get("/api/v1/tablets", params=params)
     assert response.status_code == 422
     assert response.json()["where"] == where
+
+
+def test_snapshot_agrees_with_the_database_and_follows_changes(client, world, catalogue):
+    queries = [
+        SearchQuery(),
+        SearchQuery(q="square"),
+        SearchQuery(filters={"period": ("Old Babylonian",)}, has_3d=False),
+        SearchQuery(q="bm", filters={"genre": ("literary", "mathematical")}),
+    ]
+    snapshot = FacetSnapshot()
+    with world.session() as session:
+        for role in ("anonymous", "reader", "staff_own", "staff_other", "admin"):
+            user = None if role == "anonymous" else session.get(User, world.users[role])
+            for query in queries:
+                cached = search_tablets(session, query, user=user, snapshot=snapshot)
+                direct = search_tablets(session, query, user=user)
+                assert (cached.total, cached.facets) == (direct.total, direct.facets), (role, query)
+    # the API's snapshot follows an edit made through the API
+    before = client.get("/api/v1/tablets").json()["facets"]["period"]
+    assert {"value": "Uruk III", "count": 1} not in before
+    response = client.patch(
+        f"/api/v1/tablets/{catalogue['K 3375']}",
+        json={"period": "Uruk III"},
+        headers=world.headers("staff_own"),
+    )
+    assert response.status_code == 200
+    after = client.get("/api/v1/tablets").json()["facets"]["period"]
+    assert {"value": "Uruk III", "count": 1} in after
