@@ -249,3 +249,51 @@ def test_celery_dispatcher_sends_by_name_to_the_queue(monkeypatch):
     assert sent["broker"] == "redis://127.0.0.1:1/0"
     assert sent["name"] == "worker.tasks.reconstruct_scan"
     assert sent["kwargs"]["args"] == [5] and sent["kwargs"]["queue"] == "reconstruct"
+
+
+@pytest.mark.redis
+def test_celery_dispatcher_publishes_to_a_real_redis(tmp_path):
+    import json
+    import socket
+    import subprocess
+    import time
+
+    import redis
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    server = subprocess.Popen(
+        [
+            "redis-server",
+            "--port",
+            str(port),
+            "--save",
+            "",
+            "--appendonly",
+            "no",
+            "--dir",
+            tmp_path,
+        ],
+        stdout=subprocess.DEVNULL,
+    )
+    try:
+        client = redis.Redis(port=port)
+        for _ in range(100):
+            try:
+                client.ping()
+                break
+            except redis.ConnectionError:
+                time.sleep(0.05)
+        dispatcher = jobs.CeleryDispatcher(
+            broker_url=f"redis://127.0.0.1:{port}/0", queue="reconstruct"
+        )
+        dispatcher.send_task(jobs.RECONSTRUCT_TASK, args=[42], task_id="job-42-attempt-1")
+        (message,) = client.lrange("reconstruct", 0, -1)
+        headers = json.loads(message)["headers"]
+        assert headers["task"] == "worker.tasks.reconstruct_scan"
+        assert headers["id"] == "job-42-attempt-1" and headers["argsrepr"] == "[42]"
+        client.close()
+    finally:
+        server.terminate()
+        server.wait(timeout=10)
