@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import re
 import threading
-from collections import Counter
+from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 
 import sqlalchemy as sa
@@ -202,15 +202,20 @@ class FacetSnapshot:
     Holds ``(id, is_public, institution_id, *FACET_FIELDS)`` per tablet (a few hundred bytes
     each: fine up to ~10^5 records) and reloads it when the catalogue's signature
     ``(count, max id, max updated_at)`` changes; every write of a tablet moves at least one
-    of the three (``updated_at`` is set on every update, bulk ones included). Thread-safe.
+    of the three (``updated_at`` is set on every update, bulk ones included). Totals and
+    facets computed from a snapshot are memoised with it (``MEMO_SIZE`` most recent
+    queries): exact, since the memo is dropped with the snapshot. Thread-safe.
     """
+
+    MEMO_SIZE = 512
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._signature: tuple | None = None
         self._rows: list[tuple] = []
+        self._memo: OrderedDict = OrderedDict()
 
-    def rows(self, session: Session) -> list[tuple]:
+    def refresh(self, session: Session) -> None:
         signature = tuple(
             session.execute(
                 select(func.count(Tablet.id), func.max(Tablet.id), func.max(Tablet.updated_at))
@@ -222,7 +227,34 @@ class FacetSnapshot:
                 columns += [getattr(Tablet, name) for name in FACET_FIELDS]
                 self._rows = [tuple(row) for row in session.execute(select(*columns))]
                 self._signature = signature
-            return self._rows
+                self._memo.clear()
+
+    def rows(self, session: Session) -> tuple[tuple | None, list[tuple]]:
+        """(signature, rows) of the current snapshot; the signature tags memo keys."""
+        self.refresh(session)
+        with self._lock:
+            return self._signature, self._rows
+
+    def memo_get(self, key):
+        with self._lock:
+            value = self._memo.get(key)
+            if value is not None:
+                self._memo.move_to_end(key)
+            return value
+
+    def memo_put(self, key, value) -> None:
+        with self._lock:
+            self._memo[key] = value
+            while len(self._memo) > self.MEMO_SIZE:
+                self._memo.popitem(last=False)
+
+
+def _visibility_key(user: User | None) -> tuple:
+    if user is not None and user.role == Role.admin:
+        return ("admin",)
+    if user is not None and user.role == Role.staff and user.institution_id is not None:
+        return ("staff", user.institution_id)
+    return ("public",)
 
 
 def _visible_in_python(user: User | None):
@@ -269,13 +301,24 @@ def search_tablets(
         total = len(items) if not paged else _count(session, conditions, text)
         return SearchResult(items=items, total=total, facets={})
     if snapshot is not None:
-        visible = _visible_in_python(user)
-        ids = _text_ids(session, text) if text is not None else None
-        rows = [
-            row[3:]
-            for row in snapshot.rows(session)
-            if visible(row) and (ids is None or row[0] in ids)
-        ]
+        signature, rows = snapshot.rows(session)
+        key = (
+            signature,
+            _visibility_key(user),
+            tuple(tokens),
+            tuple(sorted((k, tuple(sorted(v))) for k, v in query.filters.items() if v)),
+            query.has_3d,
+            facet_limit,
+        )
+        memo = snapshot.memo_get(key)
+        if memo is None:
+            visible = _visible_in_python(user)
+            ids = _text_ids(session, text) if text is not None else None
+            rows = [r[3:] for r in rows if visible(r) and (ids is None or r[0] in ids)]
+            memo = _facet_counts(rows, query, facet_limit)
+            snapshot.memo_put(key, memo)
+        total, facets = memo
+        return SearchResult(items=items, total=total, facets=facets)
     else:
         columns = [getattr(Tablet, name) for name in FACET_FIELDS]
         stmt = _filtered(select(*columns), {"": conditions[""]}, text)
