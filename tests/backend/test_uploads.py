@@ -424,3 +424,29 @@ def test_expire_stale_uploads(client, world, app):
     assert client.get(f"{API}/uploads/{old_id}", headers=headers).status_code == 404
     assert client.get(f"{API}/uploads/{fresh_id}", headers=headers).status_code == 200
     assert sorted(p.name for p in uploads_dir.iterdir()) == [f"{fresh_id}.part"]
+
+
+def test_bundles_go_to_s3_when_configured(client, world, dispatcher, app, tmp_path):
+    from moto.server import ThreadedMotoServer
+
+    from backend.storage import S3Storage
+
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    try:
+        host, port = server.get_host_and_port()
+        store = S3Storage(
+            bucket="bundles-test",
+            endpoint_url=f"http://{host}:{port}",
+            access_key_id="testing",
+            secret_access_key="testing",
+        )
+        store.ensure_bucket()
+        app.state.storage = store
+        data = bundle_bytes(tmp_path, scan_id="rig-s3")
+        _, response = upload_all(client, world, data, chunk=2000)
+        assert response.status_code == 201
+        (key,) = store.list("scans/")
+        assert store.read_bytes(key) == data and store.stat(key).etag == sha(data)
+    finally:
+        server.stop()
