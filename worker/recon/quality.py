@@ -6,15 +6,14 @@
   RMS residual corrected for the 3 fitted parameters, √(K/(K−3))·residual; pixels with
   K = 3 (no residual) take the image's median. A floor of `floor_rad` stands for what the
   residual cannot see (calibration of the light directions, non-Lambertian bias).
-- Fringe heights: σ_f from the data itself, 1.4826·MAD of the height minus its 5×5 median
-  (the median follows the surface, the difference is noise, scaled by the median-filter
-  variance factor), per pixel divided by √(azimuths used / median azimuths used).
+- Fringe heights: σ_f from the data itself, 1.4826·MAD/√6 of the second differences
+  h[i+1] − 2h[i] + h[i−1] along rows and columns (they cancel the surface's slope; white
+  noise gives them variance 6σ²), per pixel divided by √(azimuths used / median used).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 __all__ = ["fringe_sigma_um", "normal_sigma_rad"]
 
@@ -58,8 +57,7 @@ def fringe_sigma_um(
     """Per-pixel noise of the fringe heights (µm) and the image-wide estimate σ_f.
 
     height_um: (H, W) NaN where none; mask: (H, W) bool. Returns ((H, W) float32, inf where
-    no height; σ_f). The 5×5 median of white noise has variance ≈ π/(2·25) of the input's,
-    so h − median has variance σ²(1 + π/50); the MAD is divided by √(1 + π/50).
+    no height; σ_f).
     """
     h = np.asarray(height_um, np.float32)
     m = np.asarray(mask, bool) & np.isfinite(h)
@@ -68,12 +66,17 @@ def fringe_sigma_um(
     out = np.full(h.shape, np.inf, np.float32)
     if m.sum() < 25:
         return out, float("inf")
-    fill = float(np.median(h[m]))
-    med = ndimage.median_filter(np.where(m, h, fill), size=5, mode="nearest")
-    inner = ndimage.binary_erosion(m, structure=np.ones((5, 5), bool))
-    sample = (h - med)[inner if inner.any() else m]
+    # Second differences cancel the surface's slope; white noise gives them variance 6σ²;
+    # the MAD ignores the few large values at creases and wedge rims.
+    d2 = [
+        (h[:, 2:] - 2 * h[:, 1:-1] + h[:, :-2])[m[:, 2:] & m[:, 1:-1] & m[:, :-2]],
+        (h[2:, :] - 2 * h[1:-1, :] + h[:-2, :])[m[2:, :] & m[1:-1, :] & m[:-2, :]],
+    ]
+    sample = np.concatenate(d2)
+    if sample.size < 25:
+        return out, float("inf")
     mad = float(np.median(np.abs(sample - np.median(sample))))
-    sigma = max(1.4826 * mad / np.sqrt(1 + np.pi / 50), floor_um)
+    sigma = max(1.4826 * mad / np.sqrt(6.0), floor_um)
     if azimuths_used is not None:
         a = np.asarray(azimuths_used, np.float32)
         typical = float(np.median(a[m])) if m.any() else 1.0

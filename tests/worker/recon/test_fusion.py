@@ -162,3 +162,29 @@ def test_inputs_are_not_modified_and_bad_sigma_is_named():
             normal_sigma_rad=0.01,
             height_sigma_um=1.0,
         )
+
+
+def test_fringe_noise_is_estimated_on_a_curved_surface():
+    # 60,000 second differences: the MAD's relative standard error is ~1.1/√N ≈ 0.5 %, so
+    # 5 % covers it with the curvature's small contribution (2·0.001 µm per px²).
+    from worker.recon.quality import fringe_sigma_um
+
+    rng = np.random.default_rng(0)
+    y, x = np.mgrid[0:200, 0:300]
+    h = 0.3 * x + 0.001 * (x - 150) ** 2 + rng.normal(0, 1.5, x.shape)
+    per_pixel, sigma = fringe_sigma_um(h, np.ones(h.shape, bool))
+    assert sigma == pytest.approx(1.5, rel=0.05)
+    assert np.allclose(per_pixel, sigma)
+
+
+def test_normal_noise_follows_residual_and_light_count():
+    # σ_θ² = σ_s²·2/(K sin²θ) + floor², σ_s = residual·√(K/(K−3)): K = 8, θ = 45°, residual
+    # 0.02 → σ_s = 0.0253, σ_θ = √(0.0253²·0.5 + 0.003²) = 0.0183 rad.
+    from worker.recon.quality import normal_sigma_rad
+
+    res = np.array([[0.02, 0.0, np.nan]], np.float32)
+    k = np.array([[8, 3, 0]], np.int16)
+    sig = normal_sigma_rad(res, k, polar_deg=45.0)
+    assert sig[0, 0] == pytest.approx(0.0183, rel=0.01)
+    assert np.isfinite(sig[0, 1])  # 3 lights: the image's typical noise
+    assert np.isinf(sig[0, 2])
