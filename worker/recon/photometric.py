@@ -21,8 +21,9 @@ import numpy as np
 
 __all__ = ["PhotometricResult", "light_directions", "photometric_stereo"]
 
-_CHUNK_PIXELS = 1 << 18
-_SIGMA_SAMPLE_PIXELS = 1 << 16
+# About 4 M samples per (K, n) working array (16 MB float32), whatever the number of lights.
+_CHUNK_SAMPLES = 1 << 22
+_SIGMA_SAMPLE_PIXELS = 1 << 14
 
 
 @dataclass(frozen=True)
@@ -202,7 +203,9 @@ class _Model:
         inl = inl.copy()
         b, ok = b.copy(), ok.copy()
         cols = np.flatnonzero(inl.sum(axis=0) > 3)
-        for _ in range(self.s.shape[0] - 3):
+        # Few rounds: the batch removal below empties most pixels in one or two, and what a
+        # round cap leaves is caught by the tolerance test of the next selection.
+        for _ in range(min(self.s.shape[0] - 3, 6)):
             if cols.size == 0:
                 break
             sub = inl[:, cols]
@@ -218,15 +221,31 @@ class _Model:
             # Externally studentised: the deleted residual r/(1 − h) has variance
             # σ²/(1 − h), so r/sqrt(1 − h) is compared with the tolerance.
             ratio = raw / np.sqrt(np.maximum(1.0 - lev, np.float32(1e-3)))
-            worst = np.argmax(ratio, axis=0)
-            bad = (ratio[worst, np.arange(cols.size)] > 1.0) & (sub.sum(axis=0) > 3)
-            cols, worst = cols[bad], worst[bad]
+            n_in = sub.sum(axis=0)
+            worst = ratio.max(axis=0)
+            bad = (worst > 1.0) & (n_in > 3)
+            cols, sub, ratio, n_in, worst = (
+                cols[bad],
+                sub[:, bad],
+                ratio[:, bad],
+                n_in[bad],
+                worst[bad],
+            )
             if cols.size == 0:
                 break
-            inl[worst, cols] = False
+            # The worst sample goes; with many lights, so do up to a quarter of the inliers
+            # that misfit at least half as badly (a broad highlight covers many lights and
+            # would otherwise cost one round each).  Re-admission restores any good one.
+            cap = np.maximum(1, np.minimum(n_in // 4, n_in - 3))
+            ranked = -np.sort(-ratio, axis=0)
+            cap_thr = np.take_along_axis(ranked, (cap - 1)[None, :], axis=0)[0]
+            thr = np.maximum(np.maximum(np.float32(1.0), 0.5 * worst), cap_thr)
+            drop = sub & (ratio >= thr[None, :])
+            inl[:, cols] &= ~drop
             b_new, ok_new = _fit(self.s[:, cols], inl[:, cols], self.lights32, self.ll6)
             # A removal that leaves lights not spanning 3-D is undone and ends that pixel.
-            inl[worst[~ok_new], cols[~ok_new]] = True
+            undo = ~ok_new
+            inl[:, cols[undo]] |= drop[:, undo]
             cols = cols[ok_new]
             b[cols], ok[cols] = b_new[ok_new], True
         return inl, b, ok
@@ -424,12 +443,13 @@ def photometric_stereo(
         )
     abs_tol = np.float32(noise_k * (noise_sigma or 0.0))
 
-    for start in range(0, pix.size, _CHUNK_PIXELS):
+    chunk = max(4096, _CHUNK_SAMPLES // k)
+    for start in range(0, pix.size, chunk):
         # Without a mask the chunks are contiguous slices: no gather copy of the stack.
         idx = (
-            pix[start : start + _CHUNK_PIXELS]
+            pix[start : start + chunk]
             if mask is not None
-            else slice(start, min(start + _CHUNK_PIXELS, pix.size))
+            else slice(start, min(start + chunk, pix.size))
         )
         s = flat[:, idx].astype(np.float32)
         valid = np.isfinite(s)
