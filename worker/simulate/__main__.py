@@ -58,6 +58,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileExistsError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # disk full, permissions: nothing half-written is left behind
+        print(f"error: cannot write {args.out}: {exc}", file=sys.stderr)
+        return 1
     for face, path in result.bundles.items():
         print(f"{face}: {path} ({result.gt_dirs[face]})")
     return 0

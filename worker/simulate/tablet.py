@@ -140,7 +140,7 @@ def _inscribe_face(pillow: Pillow, face: str, rng: np.random.Generator):
     pieces: list[Polyhedron] = []
     # Rulings follow the face in straight segments short enough (<= 2 mm) that the
     # convex surface rises < 10 µm above each chord, and stop before the rounded edge.
-    u_rule = a - 0.6 * r
+    u_rule = a - 1.0 * r
     us = np.linspace(-u_rule, u_rule, int(2 * u_rule // 2000) + 2)
     for v in rulings:
         depth = rng.uniform(50.0, 110.0)
