@@ -21,7 +21,7 @@ from fastapi.staticfiles import StaticFiles
 from backend.api import auth, institutions, tablets, tokens, users
 from backend.db import make_engine, make_sessionmaker
 from backend.errors import install_error_handlers
-from backend.search import FacetSnapshot
+from backend.search import FacetSnapshot, invalidate_on_tablet_writes
 from backend.security import SessionSigner
 from backend.settings import Settings, get_settings
 
@@ -69,6 +69,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         settings.signing_secret, max_age_s=settings.session_max_age_s
     )
     app.state.facet_snapshot = FacetSnapshot()
+    invalidate_on_tablet_writes(app.state.sessionmaker, app.state.facet_snapshot)
     install_error_handlers(app)
     # Reads are open to any origin (catalogue data, models for other viewers); writes need a
     # token or a same-site cookie, so no credentials are allowed cross-origin.

@@ -21,11 +21,12 @@ from __future__ import annotations
 
 import re
 import threading
+import time
 from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 
 import sqlalchemy as sa
-from sqlalchemy import ColumnElement, Select, func, select
+from sqlalchemy import ColumnElement, Select, event, func, select
 from sqlalchemy.orm import Session
 
 from backend.crud import visible_clause
@@ -160,8 +161,10 @@ def _order(query: SearchQuery, text: _TextMatch | None) -> tuple[list, bool]:
         return [text.order, Tablet.id.asc()], True
     column = SORT_FIELDS[sort.lstrip("-")]
     direction = column.desc() if sort.startswith("-") else column.asc()
-    # NULLs last either way, then id for a stable order across pages.
-    return [column.is_(None), direction, Tablet.id.asc()], False
+    # NULLs last either way, then id for a stable order across pages. Without the NULL term
+    # on NOT NULL columns, so that an index on the column can give the order.
+    nulls_last = [column.is_(None)] if column.nullable else []
+    return [*nulls_last, direction, Tablet.id.asc()], False
 
 
 def _facet_counts(
@@ -202,26 +205,41 @@ class FacetSnapshot:
     Holds ``(id, is_public, institution_id, *FACET_FIELDS)`` per tablet (a few hundred bytes
     each: fine up to ~10^5 records) and reloads it when the catalogue's signature
     ``(count, max id, max updated_at)`` changes; every write of a tablet moves at least one
-    of the three (``updated_at`` is set on every update, bulk ones included). Totals and
+    of the three (``updated_at`` is set on every update, bulk ones included). The signature
+    is checked at most every ``CHECK_INTERVAL_S``; writes through this process's sessions
+    invalidate at once (:func:`invalidate_on_tablet_writes`). Totals and
     facets computed from a snapshot are memoised with it (``MEMO_SIZE`` most recent
     queries): exact, since the memo is dropped with the snapshot. Thread-safe.
     """
 
     MEMO_SIZE = 512
+    CHECK_INTERVAL_S = 1.0  # how stale counts may be after another process's write
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._signature: tuple | None = None
         self._rows: list[tuple] = []
         self._memo: OrderedDict = OrderedDict()
+        self._checked_at = float("-inf")
+
+    def invalidate(self) -> None:
+        """Forget the snapshot: the next search reloads it (called after tablet writes)."""
+        with self._lock:
+            self._checked_at = float("-inf")
+            self._signature = None
 
     def refresh(self, session: Session) -> None:
+        now = time.monotonic()
+        with self._lock:
+            if self._signature is not None and now - self._checked_at < self.CHECK_INTERVAL_S:
+                return
         signature = tuple(
             session.execute(
                 select(func.count(Tablet.id), func.max(Tablet.id), func.max(Tablet.updated_at))
             ).one()
         )
         with self._lock:
+            self._checked_at = now
             if signature != self._signature:
                 columns = [Tablet.id, Tablet.is_public, Tablet.institution_id]
                 columns += [getattr(Tablet, name) for name in FACET_FIELDS]
@@ -330,3 +348,24 @@ def search_tablets(
 def _count(session: Session, conditions, text) -> int:
     stmt = _filtered(select(func.count(Tablet.id)).select_from(Tablet), conditions, text)
     return int(session.scalar(stmt) or 0)
+
+
+def invalidate_on_tablet_writes(factory, snapshot: FacetSnapshot) -> None:
+    """Make sessions of ``factory`` invalidate ``snapshot`` when they commit tablet changes."""
+
+    @event.listens_for(factory, "after_flush")
+    def _note_tablet_changes(session, _flush_context):
+        if any(isinstance(obj, Tablet) for obj in (*session.new, *session.dirty, *session.deleted)):
+            session.info["tablets_changed"] = True
+
+    @event.listens_for(factory, "do_orm_execute")
+    def _note_bulk_writes(state):
+        if (state.is_insert or state.is_update or state.is_delete) and any(
+            mapper.class_ is Tablet for mapper in state.all_mappers
+        ):
+            state.session.info["tablets_changed"] = True
+
+    @event.listens_for(factory, "after_commit")
+    def _invalidate(session):
+        if session.info.pop("tablets_changed", False):
+            snapshot.invalidate()

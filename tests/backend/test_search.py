@@ -8,6 +8,7 @@ import json
 
 import pytest
 
+from backend.db import make_engine, make_sessionmaker, session_scope
 from backend.search import FacetSnapshot, SearchQuery, search_tablets
 from backend.tables import Tablet, User
 
@@ -174,3 +175,20 @@ def test_snapshot_agrees_with_the_database_and_follows_changes(client, world, ca
     assert response.status_code == 200
     after = client.get("/api/v1/tablets").json()["facets"]["period"]
     assert {"value": "Uruk III", "count": 1} in after
+
+
+def test_snapshot_sees_other_processes_writes_after_the_check_interval(
+    client, app, world, catalogue, monkeypatch
+):
+    def periods():
+        facets = client.get("/api/v1/tablets").json()["facets"]["period"]
+        return {f["value"]: f["count"] for f in facets}
+
+    assert periods()["Neo-Assyrian"] == 1
+    # another process: an engine and sessions the app's snapshot knows nothing of
+    engine = make_engine(app.state.settings.resolved_database_url)
+    with session_scope(make_sessionmaker(engine)) as session:
+        session.get(Tablet, catalogue["BM 80150"]).period = "Neo-Assyrian"
+    engine.dispose()
+    monkeypatch.setattr(FacetSnapshot, "CHECK_INTERVAL_S", 0.0)
+    assert periods()["Neo-Assyrian"] == 2
