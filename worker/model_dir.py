@@ -12,7 +12,7 @@ import json
 import os
 import shutil
 import uuid
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import cv2
@@ -81,17 +81,20 @@ def write_model_dir(
     report: dict,
     *,
     max_glb_triangles: int = 200_000,
+    finish_report: Callable[[dict], dict] | None = None,
 ) -> dict:
     """Write the model directory atomically; returns the report (with mesh figures added).
 
-    An existing OUTDIR is replaced only once the new one is complete.
+    `finish_report(report) -> report` is called just before report.json is written (the
+    last file), e.g. to record the time spent writing. An existing OUTDIR is replaced only
+    once the new one is complete.
     """
     out = Path(out_dir)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp-{uuid.uuid4().hex}")
     tmp.mkdir()
     try:
-        report = _fill(tmp, model, report, max_glb_triangles)
+        report = _fill(tmp, model, report, max_glb_triangles, finish_report)
         _fsync_dir(tmp)
         if out.exists():
             trash = out.with_name(f".{out.name}.old-{uuid.uuid4().hex}")
@@ -107,7 +110,7 @@ def write_model_dir(
     return report
 
 
-def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int) -> dict:
+def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int, finish) -> dict:
     m = np.asarray(model.mask, bool)
     h = np.where(m, model.height_um, np.nan).astype(np.float32)
     n = np.where(m[..., None], model.normals, np.nan).astype(np.float32)
@@ -144,5 +147,7 @@ def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int) -
         "glb_triangles": info["triangles"],
         "glb_grid_step_px": info["step"],
     }
+    if finish is not None:
+        report = finish(report)
     _write(tmp / "report.json", json.dumps(report, indent=1, allow_nan=False).encode())
     return report

@@ -102,28 +102,15 @@ def reconstruct_bundle(
         pixel_size_um=meas.pixel_size_um,
         quality=quality,
     )
-    timings["write"] = 0.0
-    timings["total"] = 0.0
-    report = write_model_dir(out_dir, model, report)
-    timings["write"] = time.perf_counter() - t0
-    timings["total"] = time.perf_counter() - t_start
-    report["timings_s"] = timings
-    _rewrite_report(out_dir, report)
+
+    def finish(rep: dict) -> dict:
+        timings["write"] = time.perf_counter() - t0
+        timings["total"] = time.perf_counter() - t_start
+        return {**rep, "timings_s": dict(timings)}
+
+    report = write_model_dir(out_dir, model, report, finish_report=finish)
     report_progress("done", 1.0)
     return report
-
-
-def _rewrite_report(out_dir, report):
-    """Put the final timings (write, total) into report.json, atomically."""
-    import json
-
-    path = os.path.join(out_dir, "report.json")
-    tmp = path + ".tmp"
-    with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump(report, fh, indent=1, allow_nan=False)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 def _mask(meas: Measurements) -> np.ndarray:
