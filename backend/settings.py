@@ -70,8 +70,20 @@ class Settings(BaseSettings):
     upload_max_bytes: int = 20 * 1024**3
 
     # jobs (used by backend.jobs and the worker)
-    broker_url: str = "redis://127.0.0.1:6379/0"
+    broker_url: str | None = Field(
+        default=None,
+        description="Celery broker, e.g. redis://redis:6379/0; default: the embedded broker "
+        "sqla+sqlite:///<data_dir>/broker.sqlite (no server needed; backend.queue)",
+    )
     job_queue: str = "reconstruct"
+    job_stale_after_s: float = Field(
+        default=120.0, gt=0, description="a running job without heartbeat this long is re-sent"
+    )
+    job_queued_stale_after_s: float = Field(
+        default=600.0, gt=0, description="a queued job not picked up this long is re-sent"
+    )
+    job_sweep_interval_s: float = Field(default=30.0, gt=0, description="sweeper period")
+    job_time_limit_s: float = Field(default=3600.0, gt=0, description="hard limit per task")
 
     @model_validator(mode="after")
     def _refuse_default_secrets_in_production(self) -> Settings:

@@ -1,0 +1,353 @@
+"""``make demo``: the whole system on the embedded default, from catalogue to relightable model.
+
+1. a fresh data directory (SQLite, local storage, the embedded broker: no server needed);
+2. the real ORACC catalogue imported (``../shared/data/oracc-catalogue`` next to the repo, or
+   ``HAMMURABI_DEMO_CATALOGUE``; without it a one-record catalogue, said clearly);
+3. ``hammurabi serve`` and ``hammurabi worker`` started as real processes;
+4. a complete tablet (all six faces) simulated (``worker.simulate``, quick preset) and each
+   face uploaded through the API by the rig agent's spool and upload client, like a rig;
+5. the reconstruction followed on the job rows (a progress line per face);
+6. the URL of the tablet in the viewer printed; serving until Ctrl-C
+   (``--exit-when-ready``: stop once the models are ready, for tests).
+
+``LocalLibrary`` (start/stop the service and workers, the CLI, an API token) is reused by
+the system tests and ``bench/queue.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import httpx
+
+REPO = Path(__file__).resolve().parent.parent
+CATALOGUE_FILE = "oracc_catalogue_merged.csv"
+DEMO_FACES = ("obverse", "reverse", "top", "bottom", "left", "right")
+FALLBACK_CATALOGUE = (
+    "key,designation,museum_no,period,provenience,genre,language\n"
+    "P000001,Demo tablet,Demo 1,Old Babylonian,Sippar,legal,Akkadian\n"
+)
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def find_catalogue() -> Path | None:
+    """The ORACC catalogue CSV: $HAMMURABI_DEMO_CATALOGUE, ../shared/data next to the repo."""
+    candidates = []
+    if os.environ.get("HAMMURABI_DEMO_CATALOGUE"):
+        candidates.append(Path(os.environ["HAMMURABI_DEMO_CATALOGUE"]))
+    candidates += [
+        REPO.parent / "shared" / "data" / "oracc-catalogue",
+        Path("/work/shared/data/oracc-catalogue"),
+    ]
+    for path in candidates:
+        if path.is_file():
+            return path
+        if (path / CATALOGUE_FILE).is_file():
+            return path / CATALOGUE_FILE
+    return None
+
+
+class LocalLibrary:
+    """The library service and its workers as subprocesses on one data directory.
+
+    ``env`` adds HAMMURABI_* settings (e.g. a Redis broker); without it everything is the
+    embedded default. Workers run in their own process group so a test can SIGKILL one
+    worker with its pool children, like a machine that dies.
+    """
+
+    def __init__(self, data_dir: Path, *, env: dict[str, str] | None = None, port: int = 0):
+        self.data_dir = Path(data_dir).resolve()
+        self.port = port or free_port()
+        self.env = {
+            **{k: v for k, v in os.environ.items() if not k.startswith("HAMMURABI_")},
+            "HAMMURABI_DATA_DIR": str(self.data_dir),
+            "HAMMURABI_ENVIRONMENT": "development",
+            "PYTHONUNBUFFERED": "1",
+            **(env or {}),
+        }
+        self.server: subprocess.Popen | None = None
+        self.workers: list[subprocess.Popen] = []
+        self.logs = self.data_dir / "logs"
+        self.logs.mkdir(parents=True, exist_ok=True)
+        self.token: str | None = None
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def cli(self, *args: str, check: bool = True) -> subprocess.CompletedProcess:
+        result = subprocess.run(
+            [sys.executable, "-m", "backend.cli", *args],
+            env=self.env,
+            cwd=self.data_dir,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        if check and result.returncode != 0:
+            raise RuntimeError(f"hammurabi {args[0]} failed: {result.stderr.strip()}")
+        return result
+
+    def create_admin_token(self, email: str = "demo@example.org") -> str:
+        self.cli("create-user", email, "--role", "admin", "--no-password")
+        self.token = self.cli("create-token", email, "--name", "demo rig").stdout.strip()
+        return self.token
+
+    def _spawn(self, args: list[str], log_name: str) -> subprocess.Popen:
+        log = open(self.logs / log_name, "ab")  # noqa: SIM115 (lives as long as the process)
+        return subprocess.Popen(
+            [sys.executable, "-m", "backend.cli", *args],
+            env=self.env,
+            cwd=self.data_dir,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+
+    def start_server(self, timeout_s: float = 60.0) -> None:
+        self.server = self._spawn(
+            ["serve", "--port", str(self.port), "--log-level", "warning"], "server.log"
+        )
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.server.poll() is not None:
+                raise RuntimeError(f"the service exited; see {self.logs / 'server.log'}")
+            try:
+                if httpx.get(f"{self.url}/api/v1/health", timeout=2).status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            time.sleep(0.2)
+        raise RuntimeError(f"the service did not answer in {timeout_s:.0f} s")
+
+    def start_worker(self, name: str | None = None) -> subprocess.Popen:
+        name = name or f"w{len(self.workers) + 1}"
+        proc = self._spawn(["worker", "--hostname", f"{name}@%h"], f"worker-{name}.log")
+        self.workers.append(proc)
+        return proc
+
+    def kill_worker(self, proc: subprocess.Popen, sig: int = signal.SIGKILL) -> None:
+        """Signal the worker's whole process group (main process and pool children)."""
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, sig)
+        proc.wait(30)
+        if proc in self.workers:
+            self.workers.remove(proc)
+
+    def stop(self) -> None:
+        for proc in [*self.workers, self.server]:
+            if proc is not None and proc.poll() is None:
+                try:
+                    os.killpg(proc.pid, signal.SIGTERM)
+                except ProcessLookupError:
+                    continue
+        for proc in [*self.workers, self.server]:
+            if proc is None:
+                continue
+            try:
+                proc.wait(20)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(10)
+        self.workers = []
+        self.server = None
+
+    def client(self) -> httpx.Client:
+        return httpx.Client(
+            base_url=f"{self.url}/api/v1",
+            headers={"Authorization": f"Bearer {self.token}"},
+            timeout=60,
+        )
+
+    def upload_bundle_zip(self, zip_path: Path, *, tablet_id: int) -> dict:
+        """Upload like a rig: a spool entry holding the bundle, the rig agent's client."""
+        from rig_agent.spool import Spool
+        from rig_agent.upload import LibraryClient, upload_scan
+
+        spool = Spool(self.data_dir / "rig-spool")
+        scan = spool.create(kind="scan", shots=[], meta={"demo": True})
+        shutil.copyfile(zip_path, scan.path / "bundle.zip")
+        scan.update_state(phase="ready", bundle="bundle.zip")
+        client = LibraryClient(self.url, self.token or "")
+        try:
+            return upload_scan(scan, client, tablet_id=tablet_id)
+        finally:
+            client.close()
+
+    def wait_jobs(
+        self,
+        job_ids: list[int],
+        *,
+        timeout_s: float,
+        on_poll: Callable[[list[dict]], None] | None = None,
+    ) -> list[dict]:
+        """Poll until every job has finished; returns their rows (JSON)."""
+        deadline = time.monotonic() + timeout_s
+        with self.client() as http:
+            while True:
+                rows = [http.get(f"/jobs/{j}").raise_for_status().json() for j in job_ids]
+                if on_poll:
+                    on_poll(rows)
+                if all(r["state"] in ("succeeded", "failed") for r in rows):
+                    return rows
+                if self.workers and all(w.poll() is not None for w in self.workers):
+                    raise RuntimeError(f"every worker exited; see {self.logs}")
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"jobs not finished after {timeout_s:.0f} s: {rows}")
+                time.sleep(0.3)
+
+
+def simulate_tablet_zips(out_dir: Path, *, seed: int, size: tuple[int, int]) -> dict[str, Path]:
+    """Simulate all six faces (quick preset) and zip each bundle: {face: bundle.zip}."""
+    from worker.simulate import simulate_scan
+
+    result = simulate_scan(out_dir / "sim", seed=seed, face="all", preset="quick", size=size)
+    zips = {}
+    for face, bundle in result.bundles.items():
+        zips[face] = Path(shutil.make_archive(str(out_dir / f"{face}-bundle"), "zip", bundle))
+    return zips
+
+
+class Progress:
+    """One status line per step; a live line for job progress when stdout is a terminal."""
+
+    def __init__(self, total_steps: int):
+        self.total = total_steps
+        self.step = 0
+        self.tty = sys.stdout.isatty()
+        self.t0 = time.monotonic()
+        self._last = ""
+
+    def say(self, text: str) -> None:
+        self.step += 1
+        print(
+            f"[{self.step}/{self.total}] {text}  ({time.monotonic() - self.t0:.0f} s)", flush=True
+        )
+
+    def jobs(self, rows: list[dict], faces: list[str]) -> None:
+        parts = [f"{face}: {_job_text(r)}" for face, r in zip(faces, rows, strict=True)]
+        line = "      " + " | ".join(parts)
+        if self.tty:
+            print("\r" + line.ljust(len(self._last)), end="", flush=True)
+        elif line != self._last:
+            print(line, flush=True)
+        self._last = line
+
+
+def _job_text(row: dict) -> str:
+    if row["state"] == "running":
+        return f"{row['stage']} {100 * row['progress']:.0f}%"
+    return row["state"]
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    progress = Progress(total_steps=6)
+    data_dir = Path(args.data_dir).resolve()
+    if data_dir.exists():
+        shutil.rmtree(data_dir)
+    data_dir.mkdir(parents=True)
+    library = LocalLibrary(data_dir, port=args.port)
+    try:
+        catalogue = find_catalogue()
+        if catalogue is None:
+            catalogue = data_dir / "demo-catalogue.csv"
+            catalogue.write_text(FALLBACK_CATALOGUE, encoding="utf-8")
+            progress.say(
+                "the ORACC catalogue was not found (looked in ../shared/data/oracc-catalogue "
+                "and $HAMMURABI_DEMO_CATALOGUE): importing a one-record demo catalogue instead"
+            )
+        else:
+            progress.say(f"importing the catalogue {catalogue} (SQLite in {data_dir})")
+        library.cli("import-catalogue", str(catalogue), "--public", "--institution", "Demo")
+        library.create_admin_token()
+
+        progress.say("starting the library service and a reconstruction worker (embedded broker)")
+        library.start_server()
+        library.start_worker("demo")
+
+        with library.client() as http:
+            items = http.get("/tablets", params={"page_size": 1, "sort": "designation"})
+            tablet = items.raise_for_status().json()["items"][0]
+        progress.say(
+            f"simulating all six faces of a tablet for {tablet['designation']} "
+            f"(quick preset, {args.width}×{args.height} px)"
+        )
+        work = Path(tempfile.mkdtemp(prefix="demo-sim-", dir=data_dir))
+        zips = simulate_tablet_zips(work, seed=args.seed, size=(args.width, args.height))
+
+        progress.say("uploading each face through the API with the rig agent's upload client")
+        faces, job_ids = [], []
+        for face in DEMO_FACES:
+            result = library.upload_bundle_zip(zips[face], tablet_id=tablet["id"])
+            faces.append(face)
+            job_ids.append(result["job"]["id"])
+        shutil.rmtree(work, ignore_errors=True)
+
+        progress.say(f"reconstructing {len(job_ids)} scans on the worker")
+        rows = library.wait_jobs(
+            job_ids, timeout_s=args.timeout, on_poll=lambda r: progress.jobs(r, faces)
+        )
+        print()
+        failed = [f"{f}: {r['error']}" for f, r in zip(faces, rows, strict=True) if r["error"]]
+        if failed:
+            print("demo: some reconstructions failed:\n  " + "\n  ".join(failed), file=sys.stderr)
+            return 1
+        url = f"{library.url}/tablet.html?id={tablet['id']}#m={rows[0]['model_id']}"
+        progress.say(f"ready: open {url}")
+        print(f"DEMO_URL {url}", flush=True)
+        if args.exit_when_ready:
+            return 0
+        print("serving until Ctrl-C", flush=True)
+        while library.server is not None and library.server.poll() is None:
+            time.sleep(1)
+        print("demo: the service stopped", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("\ndemo: stopping", file=sys.stderr)
+        return 0
+    except (RuntimeError, TimeoutError, httpx.HTTPError, OSError) as exc:
+        print(f"demo: error: {exc} (logs in {library.logs})", file=sys.stderr)
+        return 1
+    finally:
+        library.stop()
+
+
+def _terminate(signum, _frame) -> None:
+    raise KeyboardInterrupt  # SIGTERM stops the demo like Ctrl-C (processes cleaned up)
+
+
+def main(argv: list[str] | None = None) -> int:
+    signal.signal(signal.SIGTERM, _terminate)
+    parser = argparse.ArgumentParser(
+        prog="python -m worker.demo", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument("--data-dir", default=str(REPO / "var" / "demo"), help="wiped at start")
+    parser.add_argument("--port", type=int, default=8000)
+    parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--width", type=int, default=160)
+    parser.add_argument("--height", type=int, default=200)
+    parser.add_argument("--timeout", type=float, default=900.0, help="seconds for the jobs")
+    parser.add_argument(
+        "--exit-when-ready", action="store_true", help="stop once the models are ready"
+    )
+    return run_demo(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

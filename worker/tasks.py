@@ -1,0 +1,333 @@
+"""Thin Celery tasks: job ids in, the job row out (state, progress, timings, model).
+
+- ``worker.tasks.reconstruct_scan(job_id)``: fetch the scan's bundle from storage,
+  ``worker.pipeline.reconstruct_bundle``, derive the viewer's assets (``worker.assets``), store
+  the model directory and its row (``backend.jobs.mark_succeeded``: files + row together).
+- ``worker.tasks.derive_assets(job_id)``: (re)derive the assets of the latest model of the
+  job's scan, e.g. for models made before an asset existed.
+- ``worker.tasks.register_tablet(job_id)``: register a tablet's faces with
+  ``worker.register`` when that module exists (another engineer's).
+
+Idempotent: the job row is claimed with one conditional UPDATE (``backend.queue.claim``)
+before any work, so a redelivered or duplicated message finishes the same job or does
+nothing; ``models.job_id`` is unique, so one job never makes two model versions. A thread
+refreshes the heartbeat while the job runs; the sweeper re-sends jobs whose heartbeat stops.
+
+Retries: only the transient errors named in :data:`TRANSIENT` (storage unavailable, database
+connection lost, network), with exponential backoff; anything else fails the job with a
+message for people.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import shutil
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from celery.exceptions import SoftTimeLimitExceeded
+from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError, OperationalError
+
+from backend import jobs
+from backend.queue import claim, heartbeat
+from backend.storage import StorageError, storage_from_settings
+from backend.tables import Job, JobKind, JobState, Model, Scan
+from worker import celery_app as capp
+from worker.assets import AssetError
+from worker.assets import derive_assets as write_derived_assets
+from worker.celery_app import app
+
+log = logging.getLogger("worker.tasks")
+
+MAX_RETRIES = 5
+PROGRESS_MIN_INTERVAL_S = 0.5
+# Set to a file path: while that file exists a running job waits after its first progress
+# report (heartbeat still beating). For maintenance and for the kill-mid-job tests.
+PAUSE_FILE_ENV = "HAMMURABI_WORKER_PAUSE_FILE"
+
+
+def is_transient(exc: BaseException) -> bool:
+    """Errors worth retrying: the service will likely answer again in a while."""
+    if isinstance(exc, StorageError):
+        return exc.status_code == 503
+    return isinstance(exc, OperationalError | ConnectionError | TimeoutError)
+
+
+TRANSIENT = "storage 503, sqlalchemy OperationalError, ConnectionError, TimeoutError"
+
+
+class JobLost(Exception):
+    """The job was taken over by another worker (we were thought dead)."""
+
+
+class _Beat:
+    """Heartbeat thread + rate-limited progress reports for one claimed attempt."""
+
+    def __init__(self, job_id: int, attempt: int):
+        self.job_id = job_id
+        self.attempt = attempt
+        self.lost = threading.Event()
+        self._stop = threading.Event()
+        self._last_report = 0.0
+        self._last_stage: str | None = None
+        self._thread = threading.Thread(target=self._run, name=f"heartbeat-{job_id}", daemon=True)
+
+    def __enter__(self) -> _Beat:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join(5)
+
+    def _run(self) -> None:
+        period_s = max(0.2, capp.settings.job_stale_after_s / 4)
+        while not self._stop.wait(period_s):
+            try:
+                with capp.session_factory()() as session:
+                    if not heartbeat(session, job_id=self.job_id, attempt=self.attempt):
+                        self.lost.set()
+                        return
+            except Exception:  # the database may be briefly away; the sweeper is lenient
+                log.warning("job %s: heartbeat failed", self.job_id, exc_info=True)
+
+    def progress(self, stage: str, fraction: float, *, force: bool = False) -> None:
+        now = time.monotonic()
+        if (
+            not force
+            and stage == self._last_stage
+            and now - self._last_report < PROGRESS_MIN_INTERVAL_S
+        ):
+            return
+        self._last_report, self._last_stage = now, stage
+        if self.lost.is_set():
+            raise JobLost(f"job {self.job_id}: attempt {self.attempt} was taken over")
+        try:
+            with capp.session_factory()() as session:
+                jobs.report_progress(
+                    session,
+                    job_id=self.job_id,
+                    stage=stage,
+                    fraction=min(1.0, max(0.0, fraction)),
+                )
+        except jobs.JobStateError:
+            self.lost.set()
+            raise JobLost(f"job {self.job_id} is no longer running") from None
+        _wait_while_paused()
+
+    def timings(self, timings_s: dict[str, float], stage: str, fraction: float) -> None:
+        with capp.session_factory()() as session:
+            jobs.report_progress(
+                session, job_id=self.job_id, stage=stage, fraction=fraction, timings_s=timings_s
+            )
+
+
+def _wait_while_paused() -> None:
+    pause = os.environ.get(PAUSE_FILE_ENV)
+    while pause and os.path.exists(pause):
+        time.sleep(0.1)
+
+
+def _fail(job_id: int, message: str) -> None:
+    # JobStateError: finished meanwhile (another attempt): nothing to record.
+    with capp.session_factory()() as session, contextlib.suppress(jobs.JobStateError):
+        jobs.mark_failed(session, job_id=job_id, error=message)
+
+
+def _run_job(task, job_id: int, work: Callable[[_Beat, Job], str]) -> str:
+    """Claim ``job_id``, run ``work`` with a heartbeat, and turn errors into job states."""
+    with capp.session_factory()() as session:
+        job = session.get(Job, job_id)
+        if job is None:
+            log.warning("job %s does not exist (deleted?): nothing to do", job_id)
+            return "missing"
+        if job.state in (JobState.succeeded, JobState.failed):
+            return job.state.value  # a redelivered message after the job finished
+        attempt = claim(
+            session, job_id=job_id, running_stale_after_s=capp.settings.job_stale_after_s
+        )
+        if attempt is None:
+            return "busy"  # running elsewhere with a live heartbeat
+        job = session.get(Job, job_id, populate_existing=True)
+    try:
+        with _Beat(job_id, attempt) as beat:
+            beat.progress("starting", 0.0, force=True)
+            return work(beat, job)
+    except JobLost as exc:
+        log.warning("%s", exc)
+        return "lost"
+    except SoftTimeLimitExceeded:
+        _fail(job_id, f"took longer than the time limit ({capp.settings.job_time_limit_s:.0f} s)")
+        return "failed"
+    except Exception as exc:
+        if is_transient(exc) and task.request.retries < MAX_RETRIES:
+            countdown_s = min(300, 2 ** (task.request.retries + 2))
+            log.warning("job %s: transient %r, retry in %s s", job_id, exc, countdown_s)
+            with capp.session_factory()() as session:
+                session.execute(
+                    Job.__table__.update()
+                    .where(Job.id == job_id, Job.attempts == attempt)
+                    .values(
+                        state=JobState.queued, stage="waiting to retry", enqueued_at=jobs._now()
+                    )
+                )
+                session.commit()
+            raise task.retry(exc=exc, countdown=countdown_s) from None
+        log.exception("job %s failed", job_id)
+        _fail(job_id, _message(exc))
+        return "failed"
+
+
+def _message(exc: BaseException) -> str:
+    text = str(exc).strip() or type(exc).__name__
+    if isinstance(exc, ValueError | AssetError | StorageError | LookupError):
+        return text
+    return f"internal error ({type(exc).__name__}): {text}"
+
+
+def _reconstruct(beat: _Beat, job: Job) -> str:
+    from worker.pipeline import ReconstructionError, reconstruct_bundle
+
+    storage = storage_from_settings(capp.settings)
+    with capp.session_factory()() as session:
+        scan = session.get(Scan, job.scan_id)
+        if scan is None:
+            raise LookupError(f"job {job.id}: its scan is gone")
+        bundle_key = scan.bundle_key
+    work = Path(tempfile.mkdtemp(prefix=f"hammurabi-job-{job.id}-"))
+    try:
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        beat.progress("fetch", 0.01, force=True)
+        bundle = storage.get_file(bundle_key, work / Path(bundle_key).name)
+        timings["fetch"] = time.perf_counter() - t0
+
+        def progress(stage: str, fraction: float) -> None:
+            beat.progress(stage, 0.02 + 0.83 * fraction)  # reconstruction: 2 % … 85 %
+
+        t0 = time.perf_counter()
+        model_dir = work / "model"
+        try:
+            report = reconstruct_bundle(bundle, model_dir, progress=progress)
+        except ReconstructionError as exc:
+            _fail(job.id, f"reconstruction: {exc}")
+            return "failed"
+        timings["reconstruct"] = time.perf_counter() - t0
+        timings.update({f"reconstruct.{k}": v for k, v in report.get("timings_s", {}).items()})
+
+        t0 = time.perf_counter()
+        beat.progress("assets", 0.86, force=True)
+        write_derived_assets(model_dir)
+        timings["assets"] = time.perf_counter() - t0
+        beat.timings(timings, "store", 0.92)
+
+        if beat.lost.is_set():
+            raise JobLost(f"job {job.id}: attempt {beat.attempt} was taken over")
+        t0 = time.perf_counter()
+        model = _store(job.id, model_dir, storage)
+        log.info("job %s: model %s stored in %.1f s", job.id, model, time.perf_counter() - t0)
+        return "succeeded"
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def _store(job_id: int, model_dir: Path, storage) -> int:
+    """mark_succeeded, tolerant of a concurrent attempt that stored first (unique job_id)."""
+    with capp.session_factory()() as session:
+        try:
+            return jobs.mark_succeeded(
+                session, job_id=job_id, model_dir=model_dir, storage=storage
+            ).id
+        except (IntegrityError, jobs.JobStateError):
+            session.rollback()
+            existing = session.scalar(select(Model.id).where(Model.job_id == job_id))
+            if existing is None:
+                raise
+            return existing
+
+
+def _derive(beat: _Beat, job: Job) -> str:
+    storage = storage_from_settings(capp.settings)
+    with capp.session_factory()() as session:
+        model = session.scalar(
+            select(Model).where(Model.scan_id == job.scan_id).order_by(Model.version.desc())
+        )
+        if model is None:
+            raise LookupError(f"job {job.id}: scan {job.scan_id} has no model yet")
+        prefix, model_id = model.storage_prefix, model.id
+    work = Path(tempfile.mkdtemp(prefix=f"hammurabi-derive-{job.id}-"))
+    try:
+        beat.progress("fetch", 0.1, force=True)
+        for name in ("height.npy", "normals.npy", "report.json", "albedo.png", "normals.png"):
+            key = f"{prefix}/{name}"
+            if storage.exists(key):
+                storage.get_file(key, work / name)
+        beat.progress("assets", 0.4, force=True)
+        names = write_derived_assets(work)
+        beat.progress("store", 0.9, force=True)
+        stats = {name: storage.put_file(f"{prefix}/{name}", work / name) for name in names}
+        with capp.session_factory()() as session:
+            row = session.get(Model, model_id, with_for_update=True)
+            row.assets = {
+                **(row.assets or {}),
+                **{n: {"size_bytes": s.size_bytes, "sha256": s.etag} for n, s in stats.items()},
+            }
+            db_job = session.get(Job, job.id, with_for_update=True)
+            db_job.state, db_job.progress, db_job.model_id = JobState.succeeded, 1.0, model_id
+            session.commit()
+        return "succeeded"
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def _register(beat: _Beat, job: Job) -> str:
+    try:
+        import worker.register as register  # noqa: F401  (another engineer's module)
+    except ModuleNotFoundError as exc:
+        if exc.name != "worker.register":
+            raise
+        _fail(job.id, "registration of faces is not available in this worker version")
+        return "failed"
+    run = getattr(register, "run_job", None)
+    if run is None:
+        _fail(job.id, "worker.register has no run_job(job_id, session_factory, storage, progress)")
+        return "failed"
+    return run(job.id, capp.session_factory(), storage_from_settings(capp.settings), beat.progress)
+
+
+_TASK_OPTIONS = {"bind": True, "acks_late": True, "max_retries": MAX_RETRIES}
+
+
+@app.task(name=jobs.TASK_BY_KIND[JobKind.reconstruct], **_TASK_OPTIONS)
+def reconstruct_scan(self, job_id: int) -> str:
+    return _run_job(self, int(job_id), _reconstruct)
+
+
+@app.task(name=jobs.TASK_BY_KIND[JobKind.derive], **_TASK_OPTIONS)
+def derive_assets(self, job_id: int) -> str:
+    return _run_job(self, int(job_id), _derive)
+
+
+@app.task(name=jobs.TASK_BY_KIND[JobKind.register], **_TASK_OPTIONS)
+def register_tablet(self, job_id: int) -> str:
+    return _run_job(self, int(job_id), _register)
+
+
+@app.task(name="worker.tasks.noop", bind=True, acks_late=True)
+def noop(self, job_id: int) -> str:
+    """Claims and finishes a job without work: measures the queue's overhead (bench/queue.py)."""
+    return _run_job(self, int(job_id), lambda beat, job: _finish_noop(job.id))
+
+
+def _finish_noop(job_id: int) -> str:
+    with capp.session_factory()() as session:
+        db_job = session.get(Job, job_id, with_for_update=True)
+        db_job.state, db_job.progress = JobState.succeeded, 1.0
+        session.commit()
+    return "succeeded"
