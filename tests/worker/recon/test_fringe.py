@@ -108,3 +108,13 @@ def test_fringe_rejects_bad_input(func, kwargs, culprit):
     frames = np.ones((3, 4, 4)) if not kwargs else np.ones((4, 4, 4))
     with pytest.raises(ValueError, match=culprit):
         func(frames, **kwargs)
+
+
+def test_phase_estimators_leave_their_input_alone():
+    rng = np.random.default_rng(9)
+    frames = _frames(rng.uniform(-3, 3, (8, 8)), 0.4, 0.8).astype(np.float32)
+    before = frames.copy()
+    four_step_phase(frames)
+    carre_phase(frames)
+    carre_phase(frames, quadrant="paper")
+    np.testing.assert_array_equal(frames, before)

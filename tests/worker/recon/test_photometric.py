@@ -187,3 +187,13 @@ def test_simulated_bundle_normals_against_ground_truth(simulated_recon):
     assert np.percentile(z, 99) < 4.0
     # Every tablet pixel gets a normal (8 lights: at least 3 always see a visible point).
     assert np.mean(np.isfinite(err[r.mask])) > 0.99
+
+
+def test_photometric_stereo_leaves_its_input_alone():
+    rng = np.random.default_rng(10)
+    ls = light_directions(np.arange(8) * 45.0, 45.0)
+    s = rng.uniform(0, 1, (8, 6, 6)).astype(np.float32)
+    s[0, 0, 0] = np.nan
+    before = s.copy()
+    photometric_stereo(s, ls)
+    np.testing.assert_array_equal(s, before)
