@@ -287,12 +287,16 @@ def _robust_fit(model, cand, iterations):
     """LS start → select → trim; where that rejects anything, also try the alternative starts
     and keep the best by score; then re-admission rounds until the sets settle.
 
-    Pixels whose candidates all agree with their least-squares fit (most of a clean scan)
-    leave after the first pass, so the costly alternatives run on the few that need them.
+    Pixels whose candidates in front of the terminator all agree with their least-squares
+    fit (most of a clean scan) leave after the first pass, so the costly alternatives run on
+    the few that need them.
     """
     b0, ok0 = _fit(model.s, cand, model.lights32, model.ll6)
     inl, b, ok = _settle(model, cand, b0, ok0)
-    cols = np.flatnonzero(~ok | np.any(inl != cand, axis=0))
+    # Candidates left out only for lying beyond the terminator are not outliers; a pixel
+    # needs the alternatives when a sample in front of it misfits.
+    _, _, front = model.residual(b)
+    cols = np.flatnonzero(~ok | np.any(cand & ~inl & front, axis=0))
     if cols.size:
         sub = model.sub(cols)
         sub_cand = cand[:, cols]
