@@ -81,7 +81,11 @@ def four_step_phase(frames: np.ndarray) -> FringePhase:
     s = i270 - i90
     c = i0 - i180
     phase = np.arctan2(s, c)
-    amp = np.hypot(s, c, out=s)
+    # sqrt(s² + c²) in place: np.hypot is 3× slower and its overflow care is not needed here.
+    s *= s
+    c *= c
+    s += c
+    amp = np.sqrt(s, out=s)
     amp *= np.float32(0.5)
     mean = i0 + i90
     mean += i180
