@@ -27,7 +27,14 @@ from worker.simulate.rig import Rig, render_frame
 from worker.simulate.tablet import FACE_POSES, FACES, Tablet, make_tablet
 from worker.simulate.view import View, render_view
 
-__all__ = ["SimulationResult", "parse_size", "scan_rig", "simulate_scan", "wedge_records"]
+__all__ = [
+    "SimulationResult",
+    "parse_size",
+    "scan_rig",
+    "scene",
+    "simulate_scan",
+    "wedge_records",
+]
 
 
 @dataclass(frozen=True)
@@ -152,6 +159,32 @@ def scan_rig(seed: int, width: int, height: int, pixel_size_um: float, noise: No
     )
 
 
+def scene(
+    tablet: Tablet | MeshTablet,
+    pose: np.ndarray,
+    *,
+    seed: int,
+    size: tuple[int, int],
+    preset: str = "quick",
+    noise: NoiseModel,
+) -> tuple[View, Rig]:
+    """The view and instrument that ``simulate_scan`` uses for one pose, for callers that
+    render frames themselves (the rig agent's simulated camera: ``render_frame(view, frame,
+    noise, rng, rig=rig)``)."""
+    width, height = size
+    pixel = pixel_size_for(width, height)
+    render = render_mesh_view if isinstance(tablet, MeshTablet) else render_view
+    view = render(
+        tablet,
+        pose,
+        width=width,
+        height=height,
+        pixel_size_um=pixel,
+        supersample=PRESETS[preset].supersample,
+    )
+    return view, scan_rig(seed, width, height, pixel, noise)
+
+
 def _simulate_face(
     tablet: Tablet | MeshTablet,
     face: str,
@@ -169,18 +202,9 @@ def _simulate_face(
 
     preset = PRESETS[preset_name]
     width, height = size
-    pixel = pixel_size_for(width, height)
     pose = FACE_POSES[face] if pose is None else pose
-    render = render_mesh_view if isinstance(tablet, MeshTablet) else render_view
-    view = render(
-        tablet,
-        pose,
-        width=width,
-        height=height,
-        pixel_size_um=pixel,
-        supersample=preset.supersample,
-    )
-    rig = scan_rig(seed, width, height, pixel, noise)
+    view, rig = scene(tablet, pose, seed=seed, size=size, preset=preset_name, noise=noise)
+    pixel = view.pixel_size_um
     frames = plan_frames(
         preset,
         width=width,

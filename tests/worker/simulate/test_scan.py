@@ -12,8 +12,9 @@ from worker.bundle import open_bundle, validate_bundle
 from worker.simulate.__main__ import main
 from worker.simulate.acquisition import PRESETS, pixel_size_for, plan_frames
 from worker.simulate.noise import noise_model
-from worker.simulate.rig import FrameSpec, frame_radiance
-from worker.simulate.scan import scan_rig, simulate_scan
+from worker.simulate.rig import FrameSpec, frame_radiance, render_frame
+from worker.simulate.scan import scan_rig, scene, simulate_scan
+from worker.simulate.tablet import FACE_POSES, make_tablet
 
 SIZE = (64, 48)  # the quick preset's field at 536 µm pixels: tiny but complete
 
@@ -210,3 +211,27 @@ def test_oblique_pose_is_recorded(tmp_path):
         assert np.allclose(b.manifest.scan.pose, pose)
     with pytest.raises(ValueError, match="pose"):
         simulate_scan(tmp_path / "x", face="obverse", pose=np.ones((3, 3)))
+
+
+def test_simulated_camera_path_reproduces_the_bundle_frames(hard_scan):
+    """scene() + render_frame (the rig agent's camera) give the bundle's exact values."""
+    noise = noise_model("hard")
+    view, rig = scene(make_tablet(4), FACE_POSES["obverse"], seed=4, size=SIZE, noise=noise)
+    with open_bundle(hard_scan.bundles["obverse"]) as b:
+        for f in (
+            b.frames[0],
+            *b.frames_where(kind="fringe", target="object")[:2],
+            *b.frames_where(kind="color", target="reference")[:1],
+        ):
+            spec = FrameSpec(
+                f.kind,
+                f.target,
+                f.azimuth_deg,
+                f.polar_deg or 45.0,
+                f.channel,
+                f.period_um,
+                f.phase_deg,
+                f.exposure,
+            )
+            rng = np.random.default_rng([4, 0, f.index])  # seed, face, frame index
+            assert np.array_equal(render_frame(view, spec, noise, rng, rig=rig), b.raw(f))
