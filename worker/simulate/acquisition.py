@@ -159,7 +159,7 @@ def manifest(
         "format": "cuneiform-scan",
         "version": 1,
         "scan": {
-            "id": f"sim-{seed}-{face}",
+            "id": f"sim-{seed}-{face}-{width}x{height}-{noise.name}",
             "face": face,
             "pose": np.asarray(pose, float).tolist(),
             "tablet": {"designation": f"synthetic tablet {seed}", "simulator": "worker.simulate"},
