@@ -53,7 +53,7 @@ CHROMIUM_ARGS = [
 ]
 STAFF_EMAIL = "curator@example.org"
 STAFF_PASSWORD = "clay tablets are patient"
-UPLOAD_CHUNK_BYTES = 4096
+UPLOAD_CHUNK_BYTES = 512 * 1024
 
 
 def free_port() -> int:
@@ -97,6 +97,7 @@ class Library:
     models: dict[str, int] = field(default_factory=dict)  # label -> model id
     facts: ModelFacts | None = None
     log: object = None
+    env: dict = field(default_factory=dict)
 
     def stop(self) -> None:
         self.process.terminate()
@@ -247,11 +248,12 @@ def start_library(tmp: Path, *, extra_models: list | None = None) -> Library:
         "HAMMURABI_DATA_DIR": str(data_dir),
         "HAMMURABI_FRONTEND_DIST": str(dist),
         "HAMMURABI_SECRET_KEY": "browser-tests-" + "k" * 40,
-        # small chunks, so that a test bundle of a few kB is a resumable multi-chunk upload
+        # small chunks, so that a test bundle of a few MB is a resumable multi-chunk upload
         "HAMMURABI_UPLOAD_CHUNK_SIZE_BYTES": str(UPLOAD_CHUNK_BYTES),
-        # a broker nobody listens on: enqueueing fails at once and the job says why
-        "HAMMURABI_BROKER_URL": f"redis://127.0.0.1:{free_port()}/0",
     }
+    # No HAMMURABI_BROKER_URL: the embedded broker (a SQLite file in the data dir), so that
+    # start_worker() can run real reconstruction workers without any server.
+    env.pop("HAMMURABI_BROKER_URL", None)
     log = open(tmp / "server.log", "wb")  # noqa: SIM115 - lives as long as the server
     process = subprocess.Popen(
         [
@@ -304,7 +306,41 @@ def start_library(tmp: Path, *, extra_models: list | None = None) -> Library:
         models=models,
         facts=facts,
         log=log,
+        env=env,
     )
+
+
+def start_worker(library: Library, log_path: Path) -> subprocess.Popen:
+    """A real reconstruction worker (``hammurabi worker``) on the library's embedded broker."""
+    log = open(log_path, "wb")  # noqa: SIM115 - closed by stop_worker
+    process = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "backend.cli",
+            "worker",
+            "--concurrency",
+            "1",
+            "--log-level",
+            "warning",
+        ],
+        cwd=REPO,
+        env=library.env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    process.log_file = log
+    return process
+
+
+def stop_worker(process: subprocess.Popen) -> None:
+    process.terminate()
+    try:
+        process.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+    process.log_file.close()
 
 
 def launch_chromium(playwright):
