@@ -180,7 +180,7 @@ def _inscribe_edge(pillow: Pillow, face: str, rng: np.random.Generator) -> list[
     for t in np.arange(-half, half, rng.uniform(2500, 3500)):
         if rng.uniform() < 0.35:
             continue
-        w = rng.uniform(900.0, 1500.0)
+        w = rng.uniform(1000.0, 1500.0)
         depth, tail = w * rng.uniform(0.12, 0.2), w * rng.uniform(0.0, 1.2)
         if along_u:
             requests.append((t, 0.0, 1.0, 0.0, w, depth, tail))

@@ -82,7 +82,7 @@ def test_same_seed_same_tablet_other_seed_other_tablet():
 def test_wedges_are_within_spec_ranges(tablet):
     widths = np.array([w.width_um for w in tablet.wedges])
     depths = np.array([w.depth_um for w in tablet.wedges])
-    assert widths.min() >= 900 and widths.max() <= 3000
+    assert widths.min() >= 1000 and widths.max() <= 3000
     assert depths.min() >= 100 and depths.max() <= 600
     for w in tablet.wedges[:10]:  # the apex lies depth_um below the tangent plane at the centre
         assert (w.centre_um - w.apex_um) @ w.normal == pytest.approx(w.depth_um)
