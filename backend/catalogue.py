@@ -260,8 +260,9 @@ def import_catalogue(
             changed_rows.append(dict(change, id=old.id, updated_at=now))
         else:
             summary.unchanged += 1
+    # Core INSERT (executemany): the ORM's bulk path is ~3x slower on PostgreSQL.
     for start in range(0, len(new_rows), BATCH_ROWS):
-        session.execute(insert(Tablet), new_rows[start : start + BATCH_ROWS])
+        session.execute(insert(Tablet.__table__), new_rows[start : start + BATCH_ROWS])
     # Bulk UPDATE by primary key wants the same keys in every row: group by key set.
     by_keys: dict[tuple[str, ...], list[dict[str, Any]]] = {}
     for row in changed_rows:
