@@ -89,7 +89,22 @@ class TokenCreated(TokenOut):
 
 # --- tablets --------------------------------------------------------------------------------
 
-_TEXT_FIELDS = ["designation", "museum_no", "collection", "owner", "excavation_no", "period", "provenience", "genre", "subgenre", "language", "material", "object_type", "primary_publication", "notes"]
+_TEXT_FIELDS = [
+    "designation",
+    "museum_no",
+    "collection",
+    "owner",
+    "excavation_no",
+    "period",
+    "provenience",
+    "genre",
+    "subgenre",
+    "language",
+    "material",
+    "object_type",
+    "primary_publication",
+    "notes",
+]
 
 
 class TabletFields(BaseModel):
