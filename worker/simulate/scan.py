@@ -232,6 +232,7 @@ def _simulate_face(
     ):
         rng = np.random.default_rng([seed, face_id, i])
         images[file] = render_frame(view, frame, noise, rng, rig=rig)
+    view.cache.clear()  # shadows and fringe terms: hundreds of MB at the paper size
     doc = manifest(
         frames,
         files,
