@@ -129,7 +129,7 @@ def search(
             facet_limit=settings.search_facet_limit,
             snapshot=request.app.state.facet_snapshot,
         )
-        return SearchPage(
+        body = SearchPage(
             items=[TabletOut.of(t, api_prefix=prefix) for t in result.items],
             total=result.total,
             page=page,
@@ -139,6 +139,8 @@ def search(
                 for name, values in result.facets.items()
             },
         )
+        # Already validated: serialise once instead of letting response_model re-validate.
+        return Response(body.model_dump_json(), media_type="application/json")
     result = search_tablets(session, query, user=user, with_facets=False, paged=False)
     if result.total > EXPORT_MAX_ROWS:
         raise ApiError(
