@@ -513,11 +513,17 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     // needed), then restore: nothing is composited in between, so nothing flickers.
     renderer.setPixelRatio(1);
     renderer.setSize(w, h, false);
+    // Contain: the shot shows at least what the canvas shows, whatever its aspect ratio.
     const aspect = w / h;
-    const saved = { l: ortho.left, r: ortho.right, pa: persp.aspect };
-    ortho.left = -orthoHalfHeight * aspect;
-    ortho.right = orthoHalfHeight * aspect;
+    const canvasAspect = (canvas.clientWidth || 1) / (canvas.clientHeight || 1);
+    const grow = Math.max(1, canvasAspect / aspect);
+    const saved = { t: ortho.top, b: ortho.bottom, l: ortho.left, r: ortho.right, pa: persp.aspect, fov: persp.fov };
+    ortho.top = orthoHalfHeight * grow;
+    ortho.bottom = -orthoHalfHeight * grow;
+    ortho.left = -orthoHalfHeight * grow * aspect;
+    ortho.right = orthoHalfHeight * grow * aspect;
     persp.aspect = aspect;
+    persp.fov = (2 * Math.atan(Math.tan((PERSPECTIVE_FOV_DEG * Math.PI) / 360) * grow) * 180) / Math.PI;
     ortho.updateProjectionMatrix();
     persp.updateProjectionMatrix();
     render();
@@ -526,9 +532,9 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     );
     renderer.setPixelRatio(prevRatio);
     renderer.setSize(prev.x, prev.y, false);
-    ortho.left = saved.l;
-    ortho.right = saved.r;
+    Object.assign(ortho, { top: saved.t, bottom: saved.b, left: saved.l, right: saved.r });
     persp.aspect = saved.pa;
+    persp.fov = saved.fov;
     updateProjection();
     render();
     return blobPromise;

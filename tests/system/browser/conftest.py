@@ -50,7 +50,7 @@ def browser():
         b.close()
 
 
-VIEWPORT = {"width": 1100, "height": 700}
+VIEWPORT = {"width": 960, "height": 600}  # small: SwiftShader renders every pixel on the CPU
 
 
 @pytest.fixture
