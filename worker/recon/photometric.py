@@ -20,7 +20,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from worker.recon.photometric_fit import Model, estimate_sigma, initial_inliers, robust_fit
+from worker.recon.photometric_fit import (
+    Model,
+    asymmetric_refine,
+    estimate_sigma,
+    initial_inliers,
+    robust_fit,
+)
 
 __all__ = ["PhotometricResult", "light_directions", "photometric_stereo"]
 
@@ -175,6 +181,7 @@ def photometric_stereo(
         cand, _ = initial_inliers(s, valid, shadow_fraction)
         model = Model(s, valid, lights32, ll6, shadow_fraction, outlier_tolerance, abs_tol)
         b, ok, inl = robust_fit(model, cand, max_iterations)
+        b = asymmetric_refine(model, inl, b, ok, noise_sigma or 0.0)
         rho = np.linalg.norm(b, axis=1)
         ok &= rho > 0
         n = b / np.where(ok, rho, 1.0)[:, None]

@@ -301,3 +301,20 @@ def estimate_sigma(s, valid, lights32, ll6, shadow_fraction, tolerance):
     dof = float(np.mean(keep.sum(axis=0)[ok]))
     # MAD of residuals of a 3-parameter fit from m samples under-reads σ by sqrt((m-3)/m).
     return float(1.4826 * np.median(resid) * np.sqrt(dof / max(dof - 3.0, 1.0)))
+
+
+def asymmetric_refine(model, inl, b, ok, sigma, iterations=3):
+    """Down-weight inliers far ABOVE the fit: a broad glossy lobe adds light to several
+    lights within the tolerance, and Lambertian shading is the lower envelope of the data.
+
+    IRLS with w = 1 for r ≤ 2σ and (2σ/r)² above; samples below the fit keep full weight.
+    """
+    two_sigma = np.float32(max(2.0 * sigma, 1e-6))
+    for _ in range(iterations):
+        r, _, _ = model.residual(b)
+        w = np.where(r > two_sigma, (two_sigma / np.maximum(r, two_sigma)) ** 2, 1.0)
+        w = np.where(inl, w, 0.0).astype(np.float32)
+        b_new, ok_new = _fit(model.s, w, model.lights32, model.ll6)
+        take = ok_new & ok
+        b = np.where(take[:, None], b_new, b)
+    return b
