@@ -130,7 +130,9 @@ def main(argv=None) -> int:
                 print(f"| {k} | {v:.2f} |")
             print(f"| decode only (all images) | {dec:.2f} |")
             print(
-                f"\ntotal / decode = {t['total'] / dec:.2f}; peak RSS {run['maxrss_mib']:.0f} MiB"
+                f"\ntotal / decode = {t['total'] / dec:.2f} (wall); CPU seconds: pipeline "
+                f"{run['cpu']:.1f}, decode {dec_cpu:.1f} (ratio {run['cpu'] / dec_cpu:.2f}); "
+                f"peak RSS {run['maxrss_mib']:.0f} MiB"
             )
         rows = accuracy(sim)
         print(f"\n### Accuracy, seed {seed}\n")
