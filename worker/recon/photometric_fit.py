@@ -309,7 +309,9 @@ def asymmetric_refine(model, inl, b, ok, sigma, iterations=3):
 
     IRLS with w = 1 for r ≤ 2σ and (2σ/r)² above; samples below the fit keep full weight.
     """
-    two_sigma = np.float32(max(2.0 * sigma, 1e-6))
+    if not sigma > 0:
+        return b  # no noise scale to judge "far above" by
+    two_sigma = np.float32(2.0 * sigma)
     for _ in range(iterations):
         r, _, _ = model.residual(b)
         w = np.where(r > two_sigma, (two_sigma / np.maximum(r, two_sigma)) ** 2, 1.0)
