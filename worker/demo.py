@@ -86,6 +86,7 @@ class LocalLibrary:
         self.logs = self.data_dir / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
         self.token: str | None = None
+        self._log_files: list = []
 
     @property
     def url(self) -> str:
@@ -111,6 +112,7 @@ class LocalLibrary:
 
     def _spawn(self, args: list[str], log_name: str) -> subprocess.Popen:
         log = open(self.logs / log_name, "ab")  # noqa: SIM115 (lives as long as the process)
+        self._log_files.append(log)
         return subprocess.Popen(
             [sys.executable, "-m", "backend.cli", *args],
             env=self.env,
@@ -167,6 +169,9 @@ class LocalLibrary:
                 proc.wait(10)
         self.workers = []
         self.server = None
+        for log in self._log_files:
+            log.close()
+        self._log_files = []
 
     def client(self) -> httpx.Client:
         return httpx.Client(
