@@ -1,0 +1,78 @@
+"""docker-compose.yml: valid with .env.example (Debian's docker-compose 1.29, no engine needed),
+refuses to start without a secret and names it, and passes only settings that exist."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+
+from backend.settings import Settings
+
+REPO = Path(__file__).resolve().parent.parent
+COMPOSE = REPO / "docker-compose.yml"
+ENV_EXAMPLE = REPO / ".env.example"
+SECRETS = ("HAMMURABI_SECRET_KEY", "POSTGRES_PASSWORD", "MINIO_ROOT_USER", "MINIO_ROOT_PASSWORD")
+
+
+def _compose(env_file: Path, cwd: Path) -> subprocess.CompletedProcess:
+    exe = shutil.which("docker-compose")
+    assert exe, "docker-compose is not installed (scripts/setup.sh installs Debian's)"
+    # A clean environment: values must come from the env file, not from this shell.
+    env = {k: v for k, v in os.environ.items() if k not in SECRETS and not k.startswith("S3_")}
+    return subprocess.run(
+        [exe, "--env-file", str(env_file), "-f", str(COMPOSE), "config"],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
+def _env_lines(drop: str | None = None) -> str:
+    lines = ENV_EXAMPLE.read_text().splitlines()
+    return "\n".join(x for x in lines if not (drop and x.startswith(f"{drop}="))) + "\n"
+
+
+def test_config_is_valid_with_env_example(tmp_path):
+    result = _compose(ENV_EXAMPLE, tmp_path)
+    assert result.returncode == 0, result.stderr
+    config = yaml.safe_load(result.stdout)
+    assert {"postgres", "redis", "minio", "minio-init", "backend", "worker"} <= set(
+        config["services"]
+    )
+    # The worker scales (--scale worker=N): no fixed container name or host port.
+    worker = config["services"]["worker"]
+    assert "container_name" not in worker and "ports" not in worker
+    for name in ("postgres", "redis", "minio", "backend", "worker"):
+        assert "healthcheck" in config["services"][name], name
+
+
+@pytest.mark.parametrize("secret", SECRETS)
+def test_a_missing_secret_fails_and_is_named(tmp_path, secret):
+    env_file = tmp_path / ".env"
+    env_file.write_text(_env_lines(drop=secret))
+    result = _compose(env_file, tmp_path)
+    assert result.returncode != 0
+    assert secret in result.stderr
+
+
+def test_environment_names_are_settings_fields():
+    config = yaml.safe_load(COMPOSE.read_text())
+    fields = set(Settings.model_fields)
+    names = set()
+    for service in config["services"].values():
+        env = service.get("environment") or {}
+        names |= {k for k in (env if isinstance(env, dict) else [e.split("=")[0] for e in env])}
+    for line in ENV_EXAMPLE.read_text().splitlines():
+        if "=" in line and not line.lstrip().startswith("#"):
+            names.add(line.split("=", 1)[0].strip())
+    ours = {n for n in names if n.startswith("HAMMURABI_")}
+    assert ours, "the compose file configures the service through HAMMURABI_* variables"
+    unknown = sorted(n for n in ours if n.removeprefix("HAMMURABI_").lower() not in fields)
+    assert unknown == [], f"not fields of backend.settings.Settings: {unknown}"
