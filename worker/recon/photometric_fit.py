@@ -303,20 +303,28 @@ def estimate_sigma(s, valid, lights32, ll6, shadow_fraction, tolerance):
     return float(1.4826 * np.median(resid) * np.sqrt(dof / max(dof - 3.0, 1.0)))
 
 
-def asymmetric_refine(model, inl, b, ok, sigma, iterations=3):
+def asymmetric_refine(model, inl, b, ok, sigma, iterations=1):
     """Down-weight inliers far ABOVE the fit: a broad glossy lobe adds light to several
     lights within the tolerance, and Lambertian shading is the lower envelope of the data.
 
     IRLS with w = 1 for r ≤ 2σ and (2σ/r)² above; samples below the fit keep full weight.
+    Only pixels with such a sample are refitted.
     """
     if not sigma > 0:
         return b  # no noise scale to judge "far above" by
     two_sigma = np.float32(2.0 * sigma)
+    b = b.copy()
+    cols = np.arange(model.s.shape[1])
     for _ in range(iterations):
-        r, _, _ = model.residual(b)
-        w = np.where(r > two_sigma, (two_sigma / np.maximum(r, two_sigma)) ** 2, 1.0)
-        w = np.where(inl, w, 0.0).astype(np.float32)
-        b_new, ok_new = _fit(model.s, w, model.lights32, model.ll6)
-        take = ok_new & ok
-        b = np.where(take[:, None], b_new, b)
+        sub = model.sub(cols)
+        r, _, _ = sub.residual(b[cols])
+        high = inl[:, cols] & (r > two_sigma)
+        keep = np.any(high, axis=0) & ok[cols]
+        cols, r, high = cols[keep], r[:, keep], high[:, keep]
+        if cols.size == 0:
+            break
+        w = np.where(high, (two_sigma / np.maximum(r, two_sigma)) ** 2, 1.0)
+        w = np.where(inl[:, cols], w, 0.0).astype(np.float32)
+        b_new, ok_new = _fit(model.s[:, cols], w, model.lights32, model.ll6)
+        b[cols[ok_new]] = b_new[ok_new]
     return b
