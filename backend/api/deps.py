@@ -36,7 +36,8 @@ from backend.tables import Role, Tablet, User
 TABLET_REF_PATTERN = r"^(\d{1,18}|[PQX]\d{6})$"
 
 
-def get_settings(request: Request) -> Settings:
+async def get_settings(request: Request) -> Settings:
+    # async: a plain attribute read must not cost a hop to the thread pool
     return request.app.state.settings
 
 
