@@ -59,13 +59,25 @@ def cmd_migrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _resend_lost_jobs(settings: Settings, factory) -> None:
+    """Jobs the broker lost while the service was down are sent again, once, in the
+    background (workers sweep periodically: backend.queue)."""
+    import threading
+
+    from backend.jobs import dispatcher_from_settings
+    from backend.queue import Sweeper
+
+    sweeper = Sweeper(factory, dispatcher_from_settings(settings), settings)
+    threading.Thread(target=sweeper.run_once, name="startup-sweep", daemon=True).start()
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from backend.main import create_app
 
     settings = _settings()
-    _migrated_sessionmaker(settings)
+    _resend_lost_jobs(settings, _migrated_sessionmaker(settings))
     uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level=args.log_level)
     return 0
 
