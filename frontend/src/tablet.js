@@ -189,7 +189,12 @@ async function refreshScans({ pickModel }) {
     const wanted = restoring?.state.model;
     const latest = all.reduce((a, b) => ((b.version ?? b.id) > (a.version ?? a.id) ? b : a));
     const target = all.find((m) => m.id === wanted) ?? latest;
+    const missingLinked = wanted != null && target.id !== wanted;
     await showModel(target.id);
+    if (missingLinked) {
+      $('notice').hidden = false;
+      $('notice').textContent = `Model ${wanted} of the link is not among this tablet's models: showing the latest.`;
+    }
   } else if (currentModel) {
     $('model-select').value = String(currentModel.id);
   }

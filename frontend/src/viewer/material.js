@@ -67,13 +67,19 @@ const fragmentShader = /* glsl */ `
     return textureLod(uNormalMap, uv, lod).xyz * 2.0 - 1.0;
   }
 
+  // Ramp colours are given in sRGB (as in the page's legend); the output stage encodes
+  // linear values to sRGB, so decode them first.
+  vec3 fromSrgb(vec3 c) {
+    return mix(c / 12.92, pow((c + 0.055) / 1.055, vec3(2.4)), step(vec3(0.04045), c));
+  }
+
   // Diverging ramp for signed values t in [-1, 1]: blue (concave) - white - red (convex).
   vec3 diverging(float t) {
     t = clamp(t, -1.0, 1.0);
     vec3 neg = vec3(0.230, 0.299, 0.754);
     vec3 mid = vec3(0.865, 0.865, 0.865);
     vec3 pos = vec3(0.706, 0.016, 0.150);
-    return t < 0.0 ? mix(mid, neg, -t) : mix(mid, pos, t);
+    return fromSrgb(t < 0.0 ? mix(mid, neg, -t) : mix(mid, pos, t));
   }
 
   // Perceptually ordered ramp (a 5-stop approximation of viridis) for t in [0, 1].
@@ -85,10 +91,8 @@ const fragmentShader = /* glsl */ `
     vec3 c3 = vec3(0.369, 0.788, 0.384);
     vec3 c4 = vec3(0.993, 0.906, 0.144);
     float s = t * 4.0;
-    if (s < 1.0) return mix(c0, c1, s);
-    if (s < 2.0) return mix(c1, c2, s - 1.0);
-    if (s < 3.0) return mix(c2, c3, s - 2.0);
-    return mix(c3, c4, s - 3.0);
+    vec3 c = s < 1.0 ? mix(c0, c1, s) : s < 2.0 ? mix(c1, c2, s - 1.0) : s < 3.0 ? mix(c2, c3, s - 2.0) : mix(c3, c4, s - 3.0);
+    return fromSrgb(c);
   }
 
   vec3 lit(vec3 base, vec3 n) {
@@ -142,8 +146,7 @@ const fragmentShader = /* glsl */ `
       n = normalize(uObjectToWorld * ex);
       colour = sequential(t) * (0.35 + 0.65 * max(dot(n, normalize(uLightDir)), 0.0));
     } else if (uMode == 6) {   // normals as stored: RGB = (n + 1) / 2
-      colour = nObj * 0.5 + 0.5;
-      colour = pow(colour, vec3(2.2)); // shown as the PNG's own values after sRGB output
+      colour = fromSrgb(nObj * 0.5 + 0.5); // shown as the PNG's own values after sRGB output
     } else {                   // quality map on a sequential ramp
       if (uHasTexture) {
         float q = texture(uQualityMap, vUv).r;

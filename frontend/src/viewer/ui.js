@@ -265,12 +265,37 @@ export function bindViewerUi(viewer, context) {
     fillSelect($('quality-map'), (viewer.model?.assets.quality || []).map((q) => [q.name, q.name]), s.quality ?? '');
     $('projection').setAttribute('aria-pressed', String(viewer.projection === 'perspective'));
     $('projection').textContent = viewer.projection === 'perspective' ? 'Orthographic' : 'Perspective';
+    updateLegend(s);
     const missing = viewer.missingMessage();
     showNotice(missing);
     updateScaleBar();
     canvas.dataset.mode = s.mode;
     canvas.dataset.azimuth = l.azimuthDeg.toFixed(3);
     canvas.dataset.polar = l.polarDeg.toFixed(3);
+  }
+  /** Colour ramps say what their colours mean: the quality map's range, curvature's sign. */
+  function updateLegend(s) {
+    const legend = $('legend');
+    const assets = viewer.model?.assets;
+    let spec = null;
+    if (s.mode === 'curvature' && assets?.curvature?.length) {
+      const layer = assets.curvature[Math.min(s.curvatureScale, assets.curvature.length - 1)];
+      spec = { cls: 'diverging', lo: 'concave', hi: 'convex', what: `mean curvature (${layer.label})` };
+    } else if (s.mode === 'quality' && assets?.quality?.length) {
+      const q = assets.quality.find((m) => m.name === s.quality) ?? assets.quality[0];
+      const fmt = (v) => Number(v.toPrecision(3)).toString();
+      spec = { cls: 'sequential', lo: fmt(q.range[0]), hi: fmt(q.range[1]), what: `${q.name} (2nd–98th percentile)` };
+    } else if (s.mode === 'depth' && viewer.model) {
+      const [lo, hi] = [-viewer.model.box.max[2], -viewer.model.box.min[2]];
+      spec = { cls: 'sequential', lo: `${lo.toFixed(2)} mm`, hi: `${hi.toFixed(2)} mm`, what: 'height toward the camera' };
+    }
+    legend.hidden = !spec;
+    if (!spec) return;
+    legend.querySelector('.ramp').className = `ramp ${spec.cls}`;
+    const [lo, hi] = legend.querySelectorAll('.ends span');
+    lo.textContent = spec.lo;
+    hi.textContent = spec.hi;
+    legend.querySelector('.what').textContent = spec.what;
   }
   function showNotice(text) {
     $('notice').hidden = !text;
