@@ -73,7 +73,8 @@ def _sources_newer_than(stamp: Path) -> bool:
 def ensure_frontend_built() -> Path:
     """Build frontend/dist if it is missing or older than its sources (once, under a lock)."""
     DIST.parent.mkdir(exist_ok=True)
-    with open(FRONTEND / ".build.lock", "w") as lock:
+    # the lock lives in node_modules/ (git-ignored), which the build needs anyway
+    with open(FRONTEND / "node_modules" / ".build.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if _sources_newer_than(DIST / "index.html"):
             subprocess.run(
