@@ -255,6 +255,17 @@ class Progress:
         self._last = line
 
 
+def _check_ready(library: LocalLibrary, url: str, model_id: int) -> int:
+    """The viewer page and the model's assets answer (what a browser would fetch first)."""
+    page = httpx.get(url, timeout=30)
+    with library.client() as http:
+        model = http.get(f"/models/{model_id}").raise_for_status().json()
+    glb = httpx.get(f"{library.url}{model['assets']['model.glb']}", timeout=30)
+    ok = page.status_code == 200 and glb.status_code == 200 and glb.content[:4] == b"glTF"
+    print(f"CHECK viewer page {page.status_code}, model.glb {glb.status_code}", flush=True)
+    return 0 if ok else 1
+
+
 def _job_text(row: dict) -> str:
     if row["state"] == "running":
         return f"{row['stage']} {100 * row['progress']:.0f}%"
@@ -317,7 +328,7 @@ def run_demo(args: argparse.Namespace) -> int:
         progress.say(f"ready: open {url}")
         print(f"DEMO_URL {url}", flush=True)
         if args.exit_when_ready:
-            return 0
+            return _check_ready(library, url, rows[0]["model_id"])
         print("serving until Ctrl-C", flush=True)
         while library.server is not None and library.server.poll() is None:
             time.sleep(1)
