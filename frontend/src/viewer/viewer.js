@@ -10,24 +10,13 @@ import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { loadModelAssets } from './assets.js';
 import { lightDirection } from './light.js';
+import { createMarks, pickPoint, projectPoint } from './marks.js';
+import { LAZY_KINDS, missingMessage as missingMessageOf } from './modes.js';
 import { createRelightMaterial, MODE_INDEX } from './material.js';
 import { defaultViewState, SHADING_MODES } from './permalink.js';
 import { canonicalView } from './views.js';
 
 const PERSPECTIVE_FOV_DEG = 30;
-
-/** Shading modes whose maps load on first use. */
-const LAZY_KINDS = { curvature: 'curvature', accessibility: 'accessibility', quality: 'quality' };
-
-/** Which texture each shading mode needs, for "missing texture" messages. */
-const MODE_NEEDS = {
-  natural: 'albedo',
-  curvature: 'curvature',
-  accessibility: 'accessibility',
-  relief: 'normals',
-  normals: 'normals',
-  quality: 'quality',
-};
 
 /**
  * @param {HTMLCanvasElement} canvas
@@ -42,9 +31,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
   renderer.outputColorSpace = THREE.SRGBColorSpace;
 
   const scene = new THREE.Scene();
-  const overlay = new THREE.Group(); // measuring marks; drawn on top of the model
-  overlay.renderOrder = 10;
-  scene.add(overlay);
+  const marks = createMarks(scene); // measuring marks, drawn on top of the model
 
   const ortho = new THREE.OrthographicCamera(-1, 1, 1, -1, 0.01, 1000);
   const persp = new THREE.PerspectiveCamera(PERSPECTIVE_FOV_DEG, 1, 0.01, 1000);
@@ -198,33 +185,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
    * @returns {string | null}
    */
   function missingMessage() {
-    if (!model) return null;
-    const need = MODE_NEEDS[state.shading.mode];
-    const a = model.assets;
-    const names = a.names;
-    const file = {
-      normals: 'normals.png',
-      albedo: 'albedo.png',
-      curvature: 'curvature.png',
-      accessibility: 'accessibility.png',
-      quality: 'a quality map (quality/*.npy)',
-    }[need];
-    const present = {
-      normals: Boolean(a.normals),
-      albedo: Boolean(a.albedo),
-      curvature: names.curvature.length > 0,
-      accessibility: Boolean(names.accessibility),
-      quality: names.quality.length > 0,
-    }[need];
-    const lacking = need !== undefined && !present;
-    const notes = [];
-    if (lacking) notes.push(`This model has no ${file}: the ${state.shading.mode} view is not available.`);
-    else if (model.errors[need]) notes.push(`Could not load ${file}: ${model.errors[need]}`);
-    else if (LAZY_KINDS[state.shading.mode] && a[need] === null) notes.push(`Loading ${file}…`);
-    if (!a.normals && need !== 'normals') {
-      notes.push('No normals.png: lit by the mesh normals, so fine wedges are smoothed away.');
-    }
-    return notes.length ? notes.join(' ') : null;
+    return model ? missingMessageOf(state.shading.mode, model.assets, model.errors) : null;
   }
 
   // --- camera -----------------------------------------------------------------------------
@@ -387,30 +348,14 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
 
   // --- picking and overlay ----------------------------------------------------------------
 
-  const raycaster = new THREE.Raycaster();
-
-  /**
-   * The model point under a client (CSS pixel) position.
-   * @returns {{point: number[], uv: number[] | null} | null} point in mm (scan frame)
-   */
+  /** The model point under a page (CSS pixel) position: {point (mm), uv} or null. */
   function pick(clientX, clientY) {
-    if (!model) return null;
-    const rect = canvas.getBoundingClientRect();
-    const ndc = new THREE.Vector2(
-      ((clientX - rect.left) / rect.width) * 2 - 1,
-      -((clientY - rect.top) / rect.height) * 2 + 1,
-    );
-    raycaster.setFromCamera(ndc, camera);
-    const hit = raycaster.intersectObject(model.mesh, false)[0];
-    if (!hit) return null;
-    return { point: hit.point.toArray(), uv: hit.uv ? hit.uv.toArray() : null };
+    return model ? pickPoint(canvas, camera, model.mesh, clientX, clientY) : null;
   }
 
-  /** Client (CSS pixel) position of a point in mm. */
+  /** Page (CSS pixel) position of a point in mm. */
   function project(point) {
-    const rect = canvas.getBoundingClientRect();
-    const v = new THREE.Vector3(...point).project(camera);
-    return { x: rect.left + ((v.x + 1) / 2) * rect.width, y: rect.top + ((1 - v.y) / 2) * rect.height };
+    return projectPoint(canvas, camera, point);
   }
 
   /** Millimetres per CSS pixel at the orbit target (for the scale bar). */
@@ -422,36 +367,14 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
   }
 
   function clearOverlay() {
-    for (const child of [...overlay.children]) {
-      overlay.remove(child);
-      child.geometry?.dispose();
-      child.material?.dispose();
-    }
+    marks.clear();
     invalidate();
   }
 
   /** Draw marks (points and a polyline) for measurements; replaces the previous marks. */
   function setMarks(points) {
-    clearOverlay();
-    if (!points.length || !model) return;
-    const size = model.radius * 0.012;
-    const markMaterial = () =>
-      new THREE.MeshBasicMaterial({ color: 0xffcc00, depthTest: false, transparent: true });
-    for (const p of points) {
-      const dot = new THREE.Mesh(new THREE.SphereGeometry(size, 12, 8), markMaterial());
-      dot.position.set(...p);
-      dot.renderOrder = 11;
-      overlay.add(dot);
-    }
-    if (points.length > 1) {
-      const geom = new THREE.BufferGeometry().setFromPoints(points.map((p) => new THREE.Vector3(...p)));
-      const line = new THREE.Line(
-        geom,
-        new THREE.LineBasicMaterial({ color: 0xffcc00, depthTest: false, transparent: true }),
-      );
-      line.renderOrder = 11;
-      overlay.add(line);
-    }
+    if (!model) return;
+    marks.set(points, model.radius * 0.012);
     invalidate();
   }
 

@@ -1,0 +1,54 @@
+/**
+ * What each shading mode needs, and what the page says when a model lacks it. Pure: works on
+ * the loaded-asset record of assets.js ({names, normals, albedo, curvature, accessibility,
+ * quality}; a lazily loaded kind is null until loaded, false/[] when absent).
+ */
+
+/** Shading modes whose maps load on first use. */
+export const LAZY_KINDS = Object.freeze({ curvature: 'curvature', accessibility: 'accessibility', quality: 'quality' });
+
+/** Which texture each shading mode needs. */
+export const MODE_NEEDS = Object.freeze({
+  natural: 'albedo',
+  curvature: 'curvature',
+  accessibility: 'accessibility',
+  relief: 'normals',
+  normals: 'normals',
+  quality: 'quality',
+});
+
+const FILE_OF = {
+  normals: 'normals.png',
+  albedo: 'albedo.png',
+  curvature: 'curvature.png',
+  accessibility: 'accessibility.png',
+  quality: 'a quality map (quality/*.npy)',
+};
+
+/**
+ * The sentence to show for `mode` on a model with these assets, or null when all is there.
+ * @param {string} mode a shading mode
+ * @param {object} assets the loaded-asset record
+ * @param {Record<string, string>} [errors] load errors by kind
+ * @returns {string | null}
+ */
+export function missingMessage(mode, assets, errors = {}) {
+  const need = MODE_NEEDS[mode];
+  const names = assets.names;
+  const present = {
+    normals: Boolean(assets.normals),
+    albedo: Boolean(assets.albedo),
+    curvature: names.curvature.length > 0,
+    accessibility: Boolean(names.accessibility),
+    quality: names.quality.length > 0,
+  }[need];
+  const file = FILE_OF[need];
+  const notes = [];
+  if (need !== undefined && !present) notes.push(`This model has no ${file}: the ${mode} view is not available.`);
+  else if (errors[need]) notes.push(`Could not load ${file}: ${errors[need]}`);
+  else if (LAZY_KINDS[mode] && assets[need] === null) notes.push(`Loading ${file}…`);
+  if (!assets.normals && need !== 'normals') {
+    notes.push('No normals.png: lit by the mesh normals, so fine wedges are smoothed away.');
+  }
+  return notes.length ? notes.join(' ') : null;
+}
