@@ -78,7 +78,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     settings = _settings()
     _resend_lost_jobs(settings, _migrated_sessionmaker(settings))
-    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level=args.log_level)
+    options = dict(host=args.host, port=args.port, log_level=args.log_level)
+    if args.workers > 1:
+        # Each worker process builds its app from the same environment (create_app()).
+        uvicorn.run("backend.main:create_app", factory=True, workers=args.workers, **options)
+    else:
+        uvicorn.run(create_app(settings), **options)
     return 0
 
 
@@ -198,6 +203,9 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--host", default="127.0.0.1")
     serve.add_argument("--port", type=int, default=8000)
     serve.add_argument("--log-level", default="info")
+    serve.add_argument(
+        "--workers", type=int, default=1, help="server processes (one per core in production)"
+    )
     serve.set_defaults(handler=cmd_serve)
 
     work = commands.add_parser(

@@ -60,10 +60,28 @@ def run(cmd: list[str], env: dict[str, str]) -> None:
     subprocess.run(cmd, env=env, check=True, cwd=ROOT)
 
 
+def _stat(pid: int) -> list[str]:
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+
+
 def cpu_seconds(pid: int) -> float:
-    """User + system CPU time of a process (Linux /proc), to report CPU per request."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    """User + system CPU time of a process and its children (uvicorn workers), Linux /proc."""
+    pids = [pid]
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                if int(_stat(int(entry.name))[1]) == pid:
+                    pids.append(int(entry.name))
+            except (FileNotFoundError, ProcessLookupError):
+                continue
+    total = 0
+    for p in pids:
+        try:
+            fields = _stat(p)
+        except FileNotFoundError:
+            continue
+        total += int(fields[11]) + int(fields[12])
+    return total / os.sysconf("SC_CLK_TCK")
 
 
 def wait_until_up(base: str, deadline_s: float = 60.0) -> None:
@@ -148,6 +166,7 @@ def main() -> int:
     parser.add_argument("--clients", type=int, default=50)
     parser.add_argument("--requests", type=int, default=2000)
     parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--workers", type=int, default=1, help="server processes")
     args = parser.parse_args()
 
     with tempfile.TemporaryDirectory(prefix="search_load_") as tmp:
@@ -167,7 +186,18 @@ def main() -> int:
             import_s = time.perf_counter() - t0
             port = free_port()
             server = subprocess.Popen(
-                [*cli, "serve", "--port", str(port), "--log-level", "warning"], env=env, cwd=ROOT
+                [
+                    *cli,
+                    "serve",
+                    "--port",
+                    str(port),
+                    "--log-level",
+                    "warning",
+                    "--workers",
+                    str(args.workers),
+                ],
+                env=env,
+                cwd=ROOT,
             )
             try:
                 base = f"http://127.0.0.1:{port}"

@@ -95,3 +95,25 @@ def test_unknown_command_is_a_usage_error(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["frobnicate"])
     assert exc.value.code == 2
+
+
+def test_serve_migrates_then_runs_uvicorn(env, monkeypatch):
+    from fastapi import FastAPI
+
+    calls = []
+    monkeypatch.setattr("uvicorn.run", lambda app, **options: calls.append((app, options)))
+    assert main(["serve", "--port", "8123"]) == 0
+    assert main(["serve", "--port", "8124", "--workers", "3"]) == 0
+    assert env.exists()  # migrated before serving
+    (one, one_options), (many, many_options) = calls
+    assert isinstance(one, FastAPI) and one_options["port"] == 8123
+    one.state.engine.dispose()
+    # several processes: each builds its app from the environment
+    assert many == "backend.main:create_app"
+    assert many_options == {
+        "host": "127.0.0.1",
+        "port": 8124,
+        "log_level": "info",
+        "factory": True,
+        "workers": 3,
+    }
