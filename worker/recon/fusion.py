@@ -45,7 +45,7 @@ def fuse_default(
     normal_sigma_rad: np.ndarray | float,
     height_sigma_um: np.ndarray | float,
     outlier_sigmas: float = 4.0,
-    rtol: float = 1e-3,
+    rtol: float = 2e-5,
 ) -> np.ndarray:
     """Fuse normals and fringe heights into one height map.
 

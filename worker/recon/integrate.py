@@ -181,7 +181,27 @@ def solve_screened_poisson(
         wx = np.where(free[:, 1:] & free[:, :-1], np.float32(w_bar), wx)
         wy = np.where(free[1:, :] & free[:-1, :], np.float32(w_bar), wy)
         lam = np.where(free, np.float32(lam_bar if lam_bar > 0 else w_bar * 1e-3), lam)
-    precond = _dct_preconditioner((rows, cols), w_bar, lam_bar)
+    dct_solve = _dct_preconditioner((rows, cols), w_bar, lam_bar)
+    # Symmetric diagonal scaling around the DCT solve, S·P·S with S = √(d̄/d) (d the diagonal
+    # of A, d̄ the constant operator's): where walls are down-weighted or fringe heights
+    # rejected, A's local stiffness differs from w̄·L + λ̄·I by orders of magnitude, and the
+    # scaling restores it to first order.
+    diag = lam.copy()
+    diag[:, 1:] += wx
+    diag[:, :-1] += wx
+    diag[1:, :] += wy
+    diag[:-1, :] += wy
+    d_bar = np.float32(4.0 * w_bar + lam_bar)
+    scale = np.sqrt(d_bar / np.maximum(diag, d_bar * 1e-6)).astype(np.float32)
+
+    if lam_bar < 1e-4 * w_bar:
+        # Nearly pure Poisson (normals alone): the smooth modes dominate, which the plain DCT
+        # solve captures and the diagonal scaling would distort.
+        precond = dct_solve
+    else:
+
+        def precond(r):
+            return scale * dct_solve(scale * r)
 
     b = _rhs(tx, ty, wx, wy, lam, data)
     h = (
