@@ -47,10 +47,34 @@ function renderFacets(facets) {
   }
 }
 
+function thumbnailImg(url) {
+  return el('img', { src: api.assetHref(url), alt: '', loading: 'lazy', width: 160, height: 160 });
+}
+
+// Until the search API returns a thumbnail with each tablet, a tablet with a 3-D model that
+// scrolls into view asks for its scans once and shows the newest model's thumbnail.png.
+const lazyThumbs = new IntersectionObserver((entries) => {
+  for (const entry of entries) {
+    if (!entry.isIntersecting) continue;
+    lazyThumbs.unobserve(entry.target);
+    const holder = entry.target;
+    api
+      .tabletScans(holder.dataset.tablet)
+      .then((scans) => {
+        const models = scans.flatMap((s) => s.models ?? []).filter((m) => m.assets?.['thumbnail.png']);
+        const newest = models.sort((a, b) => String(b.created_at).localeCompare(String(a.created_at)))[0];
+        if (newest && holder.isConnected) holder.replaceWith(thumbnailImg(newest.assets['thumbnail.png']));
+      })
+      .catch(() => {}); // the placeholder stays: a thumbnail is not worth an error message
+  }
+});
+
 function thumbnailOf(item) {
   const url = item.thumbnail_url ?? item.thumbnail ?? null;
-  if (url) return el('img', { src: api.assetHref(url), alt: '', loading: 'lazy', width: 160, height: 160 });
-  return el('div', { class: 'placeholder', 'aria-hidden': 'true' }, item.has_3d ? '3-D' : '—');
+  if (url) return thumbnailImg(url);
+  const holder = el('div', { class: 'placeholder', 'aria-hidden': 'true', 'data-tablet': item.id }, item.has_3d ? '3-D' : '—');
+  if (item.has_3d) lazyThumbs.observe(holder);
+  return holder;
 }
 
 function renderResults(page) {

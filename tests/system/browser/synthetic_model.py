@@ -218,6 +218,7 @@ def make_model_dir(out: Path, *, seed: int = 0, tint: float = 0.0) -> ModelFacts
     (out / "albedo.png").write_bytes(_png_bytes(albedo_png))
     (out / "curvature.png").write_bytes(_png_bytes(curvature_png))
     (out / "accessibility.png").write_bytes(_png_bytes(access_png))
+    (out / "thumbnail.png").write_bytes(_png_bytes(albedo_png[::2, ::2]))
     (out / "mask.png").write_bytes(_png_bytes(np.full(h.shape, 255, np.uint8)))
     np.save(out / "height.npy", h.astype(np.float32))
     np.save(out / "quality" / "photometric_residual.npy", residual)

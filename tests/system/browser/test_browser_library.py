@@ -8,6 +8,11 @@ def test_search_finds_a_tablet_and_opens_its_page(page, library):
     page.wait_for_selector("body[data-total]")
     names = page.locator(".card .designation").all_inner_texts()
     assert {"P999001", "P999002", "P999003"} <= set(names)  # (+ tablets other tests create)
+    # the tablet with a model shows its model's thumbnail.png, the others a placeholder
+    first = page.locator(".card", has_text="P999001")
+    first.locator("img").wait_for()
+    assert "/assets/thumbnail.png" in first.locator("img").get_attribute("src")
+    assert page.locator(".card", has_text="P999002").locator(".placeholder").count() == 1
     page.locator("#q").fill("P999002")
     page.locator("#search-form button[type=submit]").click()
     page.wait_for_function("document.querySelectorAll('.card').length === 1")
