@@ -78,7 +78,12 @@ def measure_bundle(bundle, *, progress: Callable[[str, float], None]) -> Measure
     man = bundle.manifest
     cam = man.camera
     meas = Measurements(pixel_size_um=float(cam.pixel_size_um), shape=(cam.height, cam.width))
-    meas.scan_info = {"id": man.scan.id, "face": man.scan.face}
+    meas.scan_info = {
+        "id": man.scan.id,
+        "face": man.scan.face,
+        # scan.pose initialises the registration of a tablet's scans (worker.register).
+        "pose": None if man.scan.pose is None else [list(map(float, r)) for r in man.scan.pose],
+    }
     obj = [f for f in bundle.frames if f.target == "object"]
     counts: dict[str, int] = defaultdict(int)
     for f in bundle.frames:

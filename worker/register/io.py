@@ -1,0 +1,110 @@
+"""Reading model directories and writing the registration's output directory (atomically)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import uuid
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+from PIL.PngImagePlugin import PngInfo
+
+from worker.register.pointcloud import ScanCloud, scan_cloud
+
+__all__ = ["RegisterInputError", "load_model_dir", "png_bytes", "write_output_dir"]
+
+
+class RegisterInputError(ValueError):
+    """A model directory cannot be used; the message names the directory and the file."""
+
+
+def _image(path: Path) -> np.ndarray:
+    with Image.open(path) as im:
+        return np.asarray(im)
+
+
+def load_model_dir(path: str | os.PathLike) -> tuple[ScanCloud, dict]:
+    """The model directory's scan as a ScanCloud plus its raw arrays (height, mask, albedo)."""
+    d = Path(path)
+    if not d.is_dir():
+        raise RegisterInputError(f"{d}: not a model directory")
+    try:
+        report = json.loads((d / "report.json").read_text())
+        height = np.load(d / "height.npy")
+        normals = np.load(d / "normals.npy")
+        mask = _image(d / "mask.png") > 127
+        albedo = _image(d / "albedo.png") if (d / "albedo.png").exists() else None
+    except FileNotFoundError as exc:
+        raise RegisterInputError(f"{d}: missing {Path(exc.filename).name}") from None
+    except (ValueError, OSError) as exc:
+        raise RegisterInputError(f"{d}: unreadable ({exc})") from None
+    scan = report.get("scan") or {}
+    pixel = report.get("pixel_size_um")
+    if not isinstance(pixel, (int, float)) or pixel <= 0:
+        raise RegisterInputError(f"{d}/report.json: pixel_size_um missing or not > 0")
+    face = scan.get("face") or "other"
+    label = scan.get("id") or face
+    pose = scan.get("pose")
+    try:
+        cloud = scan_cloud(
+            height,
+            normals,
+            mask,
+            albedo,
+            pixel_size_um=float(pixel),
+            label=str(label),
+            face=str(face),
+            pose=None if pose is None else np.asarray(pose, dtype=float),
+        )
+    except ValueError as exc:
+        raise RegisterInputError(f"{d}: {exc}") from None
+    return cloud, {
+        "height_um": height,
+        "mask": mask,
+        "albedo": albedo,
+        "pixel_size_um": float(pixel),
+    }
+
+
+def png_bytes(image: np.ndarray, *, px_per_mm: float, description: str) -> bytes:
+    """PNG with its resolution in the pHYs chunk (dots per inch) and ``px_per_mm`` as text."""
+    import io
+
+    info = PngInfo()
+    info.add_text("px_per_mm", f"{px_per_mm:.4f}")
+    info.add_text("Description", description)
+    buf = io.BytesIO()
+    dpi = px_per_mm * 25.4
+    Image.fromarray(np.asarray(image, np.uint8)).save(
+        buf, format="PNG", pnginfo=info, dpi=(dpi, dpi)
+    )
+    return buf.getvalue()
+
+
+def write_output_dir(out: str | os.PathLike, files: dict[str, bytes]) -> Path:
+    """Write ``files`` (relative name → bytes) into ``out`` all at once: a temporary sibling
+    directory, each file fsynced, then renamed; ``out`` must not exist or be empty."""
+    target = Path(out)
+    if target.exists() and (not target.is_dir() or any(target.iterdir())):
+        raise FileExistsError(f"{target}: exists and is not an empty directory")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_name(f".{target.name}.tmp-{uuid.uuid4().hex}")
+    tmp.mkdir()
+    try:
+        for name, data in files.items():
+            p = tmp / name
+            p.parent.mkdir(parents=True, exist_ok=True)
+            with open(p, "xb") as fh:
+                fh.write(data)
+                fh.flush()
+                os.fsync(fh.fileno())
+        if target.exists():
+            target.rmdir()
+        os.rename(tmp, target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return target

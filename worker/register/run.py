@@ -1,0 +1,104 @@
+"""Model directories → registered tablet: transforms, one-node-per-face GLB, merged surface,
+fatcross plates and the report, as bytes ready to be written (no I/O here beyond reading)."""
+
+from __future__ import annotations
+
+import json
+import time
+
+from worker.register.fatcross import (
+    FATCROSS_VIEWS,
+    add_scale_bar,
+    compose_fatcross,
+    curvature_shading,
+    natural_colour,
+    render_orthographic,
+)
+from worker.register.io import load_model_dir, png_bytes
+from worker.register.merge import grid_mesh, merged_surface, scene_glb
+from worker.register.refine import register_scans
+
+__all__ = ["register_model_dirs"]
+
+DEFAULT_PX_PER_MM = 600 / 25.4  # 600 dpi
+
+
+def register_model_dirs(
+    model_dirs: list[str], *, px_per_mm: float = DEFAULT_PX_PER_MM, name: str = "tablet"
+) -> tuple[dict[str, bytes], dict]:
+    """Register the scans of ``model_dirs``; returns (files by name, report)."""
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    loaded = [load_model_dir(d) for d in model_dirs]
+    scans = [c for c, _ in loaded]
+    labels = [c.label for c in scans]
+    if len(set(labels)) != len(labels):
+        raise ValueError(f"model directories: two scans share a label (scan.id or face): {labels}")
+    timings["load"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    reg = register_scans(scans)
+    timings["register"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    merged = merged_surface(scans, reg.transforms)
+    meshes = {
+        c.label: grid_mesh(
+            raw["height_um"], raw["mask"], raw["albedo"], pixel_size_um=raw["pixel_size_um"]
+        )
+        for c, raw in loaded
+    }
+    glb = scene_glb(meshes, dict(zip(labels, reg.transforms, strict=True)))
+    timings["merge"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    files: dict[str, bytes] = {}
+    colour, curvature = {}, {}
+    for suffix, rot in FATCROSS_VIEWS.items():
+        r = render_orthographic(
+            merged.vertices,
+            merged.faces,
+            merged.visual.vertex_colors,
+            merged.vertex_normals,
+            rot,
+            px_per_mm=px_per_mm,
+        )
+        colour[suffix] = natural_colour(r)
+        curvature[suffix] = curvature_shading(r, px_per_mm=px_per_mm)
+    gap = max(4, int(round(1.5 * px_per_mm)))
+    for kind, images in (("", colour), ("_curvature", curvature)):
+        for suffix, img in images.items():
+            files[f"fatcross/{name}{kind}_{suffix}.png"] = png_bytes(
+                add_scale_bar(img, px_per_mm=px_per_mm),
+                px_per_mm=px_per_mm,
+                description=f"{name} {suffix} {kind.strip('_') or 'colour'}, orthographic",
+            )
+        files[f"fatcross/{name}{kind}.png"] = png_bytes(
+            add_scale_bar(compose_fatcross(images, gap_px=gap), px_per_mm=px_per_mm),
+            px_per_mm=px_per_mm,
+            description=f"{name} fatcross {kind.strip('_') or 'colour'}",
+        )
+    timings["fatcross"] = time.perf_counter() - t0
+    transforms = {
+        "convention": "X_tablet = rotation @ X_scan + translation_mm; scan frame as in "
+        "SCAN_BUNDLE.md in mm ((c·s, r·s, -h)/1000); tablet frame: obverse toward -z",
+        "scans": {
+            lab: {
+                "model_dir": str(d),
+                "rotation": t[:3, :3].tolist(),
+                "translation_mm": t[:3, 3].tolist(),
+                "init": how,
+            }
+            for lab, d, t, how in zip(labels, model_dirs, reg.transforms, reg.init, strict=True)
+        },
+    }
+    report = {
+        "scans": labels,
+        "pairs": [p.__dict__ for p in reg.pairs],
+        "moved_by_icp": reg.restarts,
+        "merged": {"vertices": len(merged.vertices), "triangles": len(merged.faces)},
+        "fatcross": {"px_per_mm": round(px_per_mm, 4), "dpi": round(px_per_mm * 25.4, 1)},
+        "timings_s": {k: round(v, 3) for k, v in timings.items()},
+    }
+    files["transforms.json"] = json.dumps(transforms, indent=1).encode()
+    files["merged.ply"] = merged.export(file_type="ply")
+    files["tablet.glb"] = glb
+    files["report.json"] = json.dumps(report, indent=1).encode()
+    return files, report
