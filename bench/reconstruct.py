@@ -14,18 +14,23 @@ Prints markdown tables (docs/benchmarks.md keeps the last run).
 
 from __future__ import annotations
 
-import argparse
-import json
-import multiprocessing as mp
-import resource
 import sys
-import tempfile
-import time
 from pathlib import Path
 
-import numpy as np
+# Python puts this script's folder first on sys.path, where bench/queue.py would shadow the
+# standard library's queue (which concurrent.futures and multiprocessing import).
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+sys.path.insert(0, str(_HERE.parent))
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import argparse  # noqa: E402
+import json  # noqa: E402
+import multiprocessing as mp  # noqa: E402
+import resource  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 from worker.bundle import open_bundle  # noqa: E402
 from worker.measure import measure_bundle  # noqa: E402
