@@ -76,3 +76,46 @@ def relative_errors(est: list[np.ndarray], truth: list[np.ndarray]):
             rot = max(rot, float(ang))
             trans = max(trans, float(np.linalg.norm(d[:3, 3])))
     return rot, trans
+
+
+def write_gt_model_dirs(out, *, seed: int = 0, size=(96, 80), faces=None, pose_of=None):
+    """Model directories (height.npy, normals.npy, mask.png, albedo.png, report.json) made
+    from the simulator's ground truth of each face; ``pose_of(face)`` overrides the recorded
+    pose (None: no pose). Returns (paths, true scan → tablet transforms)."""
+    import json
+    from pathlib import Path
+
+    from PIL import Image
+
+    tablet = make_tablet(seed)
+    w, h = size
+    pixel = pixel_size_for(w, h)
+    paths, truths = [], []
+    for face in faces or list(FACE_POSES):
+        view = render_view(
+            tablet, FACE_POSES[face], width=w, height=h, pixel_size_um=pixel, supersample=2
+        )
+        gt = view.ground_truth()
+        d = Path(out) / face
+        d.mkdir(parents=True)
+        np.save(d / "height.npy", gt["height"])
+        np.save(d / "normals.npy", gt["normals"])
+        Image.fromarray((gt["mask"] * 255).astype(np.uint8)).save(d / "mask.png")
+        albedo8 = np.rint(255 * np.clip(np.nan_to_num(gt["albedo"]), 0, 1) ** (1 / 2.2)).astype(
+            np.uint8
+        )
+        Image.fromarray(albedo8).save(d / "albedo.png")
+        pose = FACE_POSES[face] if pose_of is None else pose_of(face)
+        report = {
+            "scan": {
+                "id": f"sim-{seed}-{face}",
+                "face": face,
+                "pose": None if pose is None else np.asarray(pose).tolist(),
+            },
+            "pixel_size_um": pixel,
+            "image_size": {"width": w, "height": h},
+        }
+        (d / "report.json").write_text(json.dumps(report))
+        paths.append(d)
+        truths.append(truth_transform(view.pose, view.translation_um))
+    return paths, truths
