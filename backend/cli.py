@@ -81,7 +81,15 @@ def cmd_serve(args: argparse.Namespace) -> int:
     options = dict(host=args.host, port=args.port, log_level=args.log_level)
     if args.workers > 1:
         # Each worker process builds its app from the same environment (create_app()).
-        uvicorn.run("backend.main:create_app", factory=True, workers=args.workers, **options)
+        # A worker must answer the supervisor's health check; importing the app takes
+        # longer than uvicorn's 5 s default on a busy machine, so allow a minute.
+        uvicorn.run(
+            "backend.main:create_app",
+            factory=True,
+            workers=args.workers,
+            timeout_worker_healthcheck=60,
+            **options,
+        )
     else:
         uvicorn.run(create_app(settings), **options)
     return 0

@@ -116,4 +116,5 @@ def test_serve_migrates_then_runs_uvicorn(env, monkeypatch):
         "log_level": "info",
         "factory": True,
         "workers": 3,
+        "timeout_worker_healthcheck": 60,
     }
