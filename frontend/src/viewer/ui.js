@@ -8,7 +8,7 @@ import { actionForKey, SHORTCUTS } from './keyboard.js';
 import { clampPolar, compassLabel, RAKING_PRESETS, wrapAzimuth } from './light.js';
 import { createLightWidget } from './lightWidget.js';
 import { createPicker, distanceMm, pixelSizeFromMesh } from './measure.js';
-import { encodeViewState, SHADING_MODES } from './permalink.js';
+import { encodeViewState } from './permalink.js';
 import { niceStep, profileToCsv, sampleProfile } from './profile.js';
 import { parseNpy } from './npy.js';
 import { fetchBytes } from './assets.js';
@@ -360,4 +360,3 @@ function download(blob, filename) {
   setTimeout(() => URL.revokeObjectURL(a.href), 10000);
 }
 
-export { SHADING_MODES };

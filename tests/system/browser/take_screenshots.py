@@ -62,6 +62,18 @@ def _real_model(tmp: Path) -> Path | None:
             check=True,
             capture_output=True,
         )
+        # the viewer's derived maps (thumbnail, curvature, accessibility), as the worker makes
+        subprocess.run(
+            [
+                py,
+                "-c",
+                "import sys; from worker.assets import derive_assets; derive_assets(sys.argv[1])",
+            ]
+            + [str(tmp / "recon")],
+            cwd=REPO,
+            check=True,
+            capture_output=True,
+        )
     except subprocess.CalledProcessError as exc:
         print(f"no real reconstruction ({exc.stderr.decode()[-300:]}); synthetic model only")
         return None
@@ -99,6 +111,10 @@ def main(argv: list[str] | None = None) -> None:
 
                 page.goto(f"{lib.url}/index.html")
                 page.wait_for_selector("body[data-total]")
+                page.wait_for_function(
+                    "n => document.querySelectorAll('.card img').length >= n", arg=2 if real else 1
+                )
+                page.wait_for_load_state("networkidle")
                 page.screenshot(path=args.out / "library.png")
 
                 shown = "real" if real else "v2"
