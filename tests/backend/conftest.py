@@ -4,7 +4,7 @@
   (the latter marked ``postgres``). SQLite: a copy of a migrated template file per test.
   PostgreSQL: one throwaway database per test session (unique name, dropped at the end),
   tables truncated before each test.
-- ``sqlite_url``: the SQLite one only, for tests that need no PostgreSQL run.
+- ``sqlite_url`` / ``sqlite_app``: SQLite only, for tests that need no PostgreSQL run.
 - ``settings`` / ``app`` / ``client``: ``create_app(settings)`` on that database, data and
   storage under ``tmp_path``; ``client`` is a ``fastapi.testclient.TestClient``.
 - ``world``: two institutions, a user of every role with an API token, and three tablets
@@ -115,6 +115,14 @@ def settings(db_url, tmp_path) -> Settings:
 @pytest.fixture
 def app(settings):
     app = create_app(settings)
+    yield app
+    app.state.engine.dispose()
+
+
+@pytest.fixture
+def sqlite_app(sqlite_url, tmp_path):
+    """The app on SQLite only, for tests whose outcome cannot depend on the database."""
+    app = create_app(make_settings(sqlite_url, tmp_path))
     yield app
     app.state.engine.dispose()
 

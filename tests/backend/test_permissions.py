@@ -32,8 +32,8 @@ def app_routes(app) -> set[str]:
     return {f"{method.upper()} {path}" for path, methods in paths.items() for method in methods}
 
 
-def test_every_route_has_a_row(app):
-    missing = sorted(app_routes(app) - MATRIX.keys())
+def test_every_route_has_a_row(sqlite_app):
+    missing = sorted(app_routes(sqlite_app) - MATRIX.keys())
     assert not missing, f"routes without a row in tests/backend/permission_matrix.py: {missing}"
 
 
