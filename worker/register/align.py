@@ -146,9 +146,9 @@ def multi_start_icp(
 ) -> tuple[IcpResult, int]:
     """ICP from each of ``inits`` and from each init turned by ``angle_deg`` about 14 axes
     through the source's centroid, searched on clouds thinned to ``search_voxel_mm`` with the
-    first two distances; the start with the largest overlap (fitness), which must beat the
+    distances but the last; the start with the largest overlap (fitness), which must beat the
     first init's by ``min_gain`` to replace it (a correct pose should stay), is then refined
-    at full density with the last two distances.
+    at full density with the last distance.
 
     Returns the refined result and the index of the winning init.
     """
@@ -161,14 +161,14 @@ def multi_start_icp(
         c = transform_points(init, centroid[None])[0]
         for r in _start_rotations(angle_deg):
             start = rigid(r, c - r @ c) @ init
-            res = icp(src, tgt, start, distances_mm=distances_mm[:2], max_iterations=15)
+            res = icp(src, tgt, start, distances_mm=distances_mm[:-1], max_iterations=15)
             if first is None:
                 first = res
                 best = (res, k)
             elif res.fitness > best[0].fitness + (min_gain if best[0] is first else 0.0):
                 best = (res, k)
     assert best is not None
-    refined = icp(source, target, best[0].transform, distances_mm=distances_mm[-2:])
+    refined = icp(source, target, best[0].transform, distances_mm=distances_mm[-1:])
     return refined, best[1]
 
 

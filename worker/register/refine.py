@@ -119,18 +119,30 @@ def _placed_points(scans, transforms) -> np.ndarray | None:
     return np.concatenate(pts) if pts else None
 
 
-def _leave_one_out(scans, transforms, coarse, voxel, labels_moved) -> list[np.ndarray]:
-    """Each scan against all the others, coarse to fine from its current transform: the
-    coarse, wide correspondence distance (an eighth of the tablet) with a robust kernel pulls
-    a scan whose recorded pose is tens of degrees wrong into the cup the others form."""
+def _leave_one_out(scans, transforms, distances, voxel, labels_moved) -> list[np.ndarray]:
+    """Each scan against all the others, coarse to fine from its current transform; then a
+    scan that fits far worse than the rest (overlap under half the median: a recorded pose
+    tens of degrees wrong) is searched again from starts turned about 14 axes."""
     out = list(transforms)
+    fitness = []
     for k in range(len(scans)):
         src = cloud_of(scans[k]).voxel_down_sample(voxel)
         target = _union(scans, out, k, voxel)
-        res = icp(src, target, out[k], distances_mm=coarse, max_iterations=20)
-        if _rotation_deg(res.transform, out[k]) > 5.0:
-            labels_moved.append(scans[k].label)
+        res = icp(src, target, out[k], distances_mm=distances, max_iterations=20)
         out[k] = res.transform
+        fitness.append(res.fitness)
+    median = float(np.median(fitness))
+    for k in np.argsort(fitness):
+        if fitness[k] >= 0.5 * median:
+            break
+        src = cloud_of(scans[k]).voxel_down_sample(voxel)
+        target = _union(scans, out, k, voxel)
+        res, _ = multi_start_icp(
+            src, target, [out[k]], distances_mm=distances, search_voxel_mm=2 * voxel, min_gain=0.0
+        )
+        if res.fitness > fitness[k]:
+            labels_moved.append(scans[k].label)
+            out[k] = res.transform
     return out
 
 
@@ -211,7 +223,7 @@ def register_scans(
     # Correspondences farther apart than about a pixel pair points beside, not on, the overlap
     # and pull the scans into each other's gaps: the last distance is 0.7 pixel.
     fine_mm = 0.7 * pixel_mm
-    loo = (4.0 * pixel_mm, 2.0 * pixel_mm, fine_mm)
+    loo = (diameter / 25.0, 4.0 * pixel_mm, 2.0 * pixel_mm, fine_mm)
     for _ in range(loo_rounds):
         transforms = _leave_one_out(scans, transforms, loo, pixel_mm, restarted)
     clouds = [cloud_of(s) for s in scans]
