@@ -112,7 +112,9 @@ def main(argv: list[str] | None = None) -> None:
                 page.goto(f"{lib.url}/index.html")
                 page.wait_for_selector("body[data-total]")
                 page.wait_for_function(
-                    "n => document.querySelectorAll('.card img').length >= n", arg=2 if real else 1
+                    "n => { const imgs = [...document.querySelectorAll('.card img')];"
+                    " return imgs.length >= n && imgs.every(i => i.complete && i.naturalWidth); }",
+                    arg=2 if real else 1,
                 )
                 page.wait_for_load_state("networkidle")
                 page.screenshot(path=args.out / "library.png")
