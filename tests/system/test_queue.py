@@ -86,7 +86,7 @@ def tiny_bundle_zip(tmp_path_factory) -> Path:
     from worker.simulate import simulate_scan
 
     out = tmp_path_factory.mktemp("bundle")
-    result = simulate_scan(out / "sim", seed=3, face="obverse", preset="quick", size=(96, 128))
+    result = simulate_scan(out / "sim", seed=3, face="obverse", preset="quick", size=(64, 80))
     return Path(shutil.make_archive(str(out / "bundle"), "zip", result.bundles["obverse"]))
 
 

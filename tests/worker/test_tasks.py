@@ -37,7 +37,7 @@ def bundle_zip(tmp_path_factory):
     from worker.simulate import simulate_scan
 
     out = tmp_path_factory.mktemp("bundle")
-    result = simulate_scan(out / "sim", seed=5, face="obverse", preset="quick", size=(96, 128))
+    result = simulate_scan(out / "sim", seed=5, face="obverse", preset="quick", size=(64, 80))
     return shutil.make_archive(str(out / "bundle"), "zip", result.bundles["obverse"])
 
 
