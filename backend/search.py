@@ -210,9 +210,18 @@ class FacetSnapshot:
     invalidate at once (:func:`invalidate_on_tablet_writes`). Totals and
     facets computed from a snapshot are memoised with it (``MEMO_SIZE`` most recent
     queries): exact, since the memo is dropped with the snapshot. Thread-safe.
+
+    Whole rendered search pages are cached the same way (:meth:`cached_page`): keyed by the
+    snapshot's version, the viewer's visibility scope and the normalised request, at most
+    ``PAGE_CACHE_BYTES`` / ``PAGE_CACHE_SIZE`` (least recently used dropped), and dropped with
+    the snapshot. A page is rendered only from tablet columns plus the institution's name;
+    institutions are never renamed (the API only creates them), so the tablet signature
+    covers everything a page shows.
     """
 
     MEMO_SIZE = 512
+    PAGE_CACHE_SIZE = 1024
+    PAGE_CACHE_BYTES = 32 * 1024 * 1024
     CHECK_INTERVAL_S = 1.0  # how stale counts may be after another process's write
 
     def __init__(self) -> None:
@@ -220,6 +229,11 @@ class FacetSnapshot:
         self._signature: tuple | None = None
         self._rows: list[tuple] = []
         self._memo: OrderedDict = OrderedDict()
+        self._pages: OrderedDict = OrderedDict()
+        self._pages_bytes = 0
+        # Bumped by every invalidation: a page computed while a write of this process
+        # committed is not stored (its version no longer matches).
+        self._generation = 0
         self._checked_at = float("-inf")
 
     def invalidate(self) -> None:
@@ -227,6 +241,12 @@ class FacetSnapshot:
         with self._lock:
             self._checked_at = float("-inf")
             self._signature = None
+            self._generation += 1
+            self._clear_pages()
+
+    def _clear_pages(self) -> None:
+        self._pages.clear()
+        self._pages_bytes = 0
 
     def refresh(self, session: Session) -> None:
         now = time.monotonic()
@@ -246,6 +266,7 @@ class FacetSnapshot:
                 self._rows = [tuple(row) for row in session.execute(select(*columns))]
                 self._signature = signature
                 self._memo.clear()
+                self._clear_pages()
 
     def rows(self, session: Session) -> tuple[tuple | None, list[tuple]]:
         """(signature, rows) of the current snapshot; the signature tags memo keys."""
@@ -265,6 +286,58 @@ class FacetSnapshot:
             self._memo[key] = value
             while len(self._memo) > self.MEMO_SIZE:
                 self._memo.popitem(last=False)
+
+    def cached_page(self, session: Session, user: User | None, key: tuple, render) -> bytes:
+        """The bytes ``render()`` gives for request ``key`` as seen by ``user``, cached.
+
+        ``key`` must determine the page completely for a given viewer scope and catalogue
+        (normalised query, facet limit, URL prefix: see :func:`page_key`); the viewer's
+        visibility scope and the snapshot version are added here, so a page is never served
+        to a scope other than the one it was rendered for, nor after a catalogue change.
+        """
+        self.refresh(session)
+        with self._lock:
+            version = (self._generation, self._signature)
+            full_key = (version, _visibility_key(user), key)
+            body = self._pages.get(full_key)
+            if body is not None:
+                self._pages.move_to_end(full_key)
+                return body
+        body = render()
+        with self._lock:
+            if (self._generation, self._signature) == version and full_key not in self._pages:
+                self._pages[full_key] = body
+                self._pages_bytes += len(body)
+                while self._pages and (
+                    len(self._pages) > self.PAGE_CACHE_SIZE
+                    or self._pages_bytes > self.PAGE_CACHE_BYTES
+                ):
+                    _, dropped = self._pages.popitem(last=False)
+                    self._pages_bytes -= len(dropped)
+        return body
+
+
+def page_key(query: SearchQuery, *extra) -> tuple:
+    """A hashable key equal for requests giving the same results (any viewer).
+
+    Text is reduced to its tokens (the only part of ``q`` the search uses); filter values
+    are alternatives, so their order and repeats do not matter. ``extra``: whatever else
+    shapes the rendered page (facet limit, URL prefix).
+    """
+    filters = tuple(
+        sorted(
+            (name, tuple(sorted(set(values)))) for name, values in query.filters.items() if values
+        )
+    )
+    return (
+        tuple(query_tokens(query.q)),
+        filters,
+        query.has_3d,
+        query.sort,
+        query.page,
+        query.page_size,
+        *extra,
+    )
 
 
 def _visibility_key(user: User | None) -> tuple:

@@ -25,7 +25,7 @@ from backend.api.deps import (
 )
 from backend.errors import ApiError, conflict, forbidden
 from backend.schemas import FacetValue, SearchPage, TabletCreate, TabletOut, TabletUpdate
-from backend.search import SORT_CHOICES, SearchQuery, search_tablets
+from backend.search import SORT_CHOICES, SearchQuery, page_key, search_tablets
 from backend.tables import Role
 
 router = APIRouter(prefix="/tablets", tags=["tablets"])
@@ -122,25 +122,33 @@ def search(
     fmt = _wanted_format(request, format)
     prefix = settings.api_prefix
     if fmt == "json":
-        result = search_tablets(
-            session,
-            query,
-            user=user,
-            facet_limit=settings.search_facet_limit,
-            snapshot=request.app.state.facet_snapshot,
-        )
-        body = SearchPage(
-            items=[TabletOut.of(t, api_prefix=prefix) for t in result.items],
-            total=result.total,
-            page=page,
-            page_size=page_size,
-            facets={
-                name: [FacetValue(value=v, count=n) for v, n in values]
-                for name, values in result.facets.items()
-            },
-        )
-        # Already validated: serialise once instead of letting response_model re-validate.
-        return Response(body.model_dump_json(), media_type="application/json")
+        snapshot = request.app.state.facet_snapshot
+
+        def render() -> bytes:
+            result = search_tablets(
+                session,
+                query,
+                user=user,
+                facet_limit=settings.search_facet_limit,
+                snapshot=snapshot,
+            )
+            body = SearchPage(
+                items=[TabletOut.of(t, api_prefix=prefix) for t in result.items],
+                total=result.total,
+                page=page,
+                page_size=page_size,
+                facets={
+                    name: [FacetValue(value=v, count=n) for v, n in values]
+                    for name, values in result.facets.items()
+                },
+            )
+            # Already validated: serialise once instead of letting response_model re-validate.
+            return body.model_dump_json().encode()
+
+        # Pages are cached per viewer scope and dropped when the catalogue changes.
+        key = page_key(query, settings.search_facet_limit, prefix)
+        body = snapshot.cached_page(session, user, key, render)
+        return Response(body, media_type="application/json")
     result = search_tablets(session, query, user=user, with_facets=False, paged=False)
     if result.total > EXPORT_MAX_ROWS:
         raise ApiError(

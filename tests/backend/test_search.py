@@ -9,7 +9,7 @@ import json
 import pytest
 
 from backend.db import make_engine, make_sessionmaker, session_scope
-from backend.search import FacetSnapshot, SearchQuery, search_tablets
+from backend.search import FacetSnapshot, SearchQuery, page_key, search_tablets
 from backend.tables import Tablet, User
 
 RECORDS = [
@@ -192,3 +192,108 @@ def test_snapshot_sees_other_processes_writes_after_the_check_interval(
     engine.dispose()
     monkeypatch.setattr(FacetSnapshot, "CHECK_INTERVAL_S", 0.0)
     assert periods()["Neo-Assyrian"] == 2
+
+
+def test_cached_pages_never_cross_visibility_scopes(client, world, catalogue):
+    params = {"q": "square"}
+
+    def seen(role):
+        response = client.get("/api/v1/tablets", params=params, headers=world.headers(role))
+        return sorted(_designations(response)), response.json()["total"]
+
+    public = (["BM 85194", "YBC 7289"], 2)
+    with_secret = (["BM 85194", "Secret A", "YBC 7289"], 3)
+    # privileged scopes fill the cache first: the others must still get their own pages
+    assert seen("staff_own") == with_secret
+    assert seen("admin") == with_secret
+    for role in ("anonymous", "reader", "staff_other"):
+        assert seen(role) == public, role
+    # and the other way round: a public page cached first is not what staff see
+    params = {"q": "square", "page_size": 10}
+    assert seen("anonymous") == public
+    assert seen("staff_own") == with_secret
+    assert seen("staff_other") == public
+
+
+def test_a_write_is_visible_in_the_next_search(client, world, catalogue):
+    params = {"genre": "literary"}
+    assert sorted(_designations(client.get("/api/v1/tablets", params=params))) == [
+        "BM 80150",
+        "K 3375",
+    ]
+    headers = world.headers("staff_own")
+    response = client.patch(
+        f"/api/v1/tablets/{catalogue['K 3375']}", json={"designation": "K 3375a"}, headers=headers
+    )
+    assert response.status_code == 200
+    assert sorted(_designations(client.get("/api/v1/tablets", params=params))) == [
+        "BM 80150",
+        "K 3375a",
+    ]
+    response = client.post(
+        "/api/v1/tablets",
+        json={"designation": "New 1", "genre": "literary", "is_public": True},
+        headers=headers,
+    )
+    assert response.status_code == 201, response.text
+    page = client.get("/api/v1/tablets", params=params).json()
+    assert sorted(item["designation"] for item in page["items"]) == ["BM 80150", "K 3375a", "New 1"]
+    assert page["total"] == 3
+    response = client.delete(f"/api/v1/tablets/{catalogue['BM 80150']}", headers=headers)
+    assert response.status_code == 204
+    assert sorted(_designations(client.get("/api/v1/tablets", params=params))) == [
+        "K 3375a",
+        "New 1",
+    ]
+
+
+def test_equivalent_requests_share_one_cached_page(client, app, catalogue):
+    snapshot = app.state.facet_snapshot
+    first = client.get(
+        "/api/v1/tablets",
+        params=[("q", "VAT"), ("period", "Uruk IV"), ("period", "Old Babylonian")],
+    )
+    # other case, other value order, a repeated value: the same results, the same page
+    second = client.get(
+        "/api/v1/tablets",
+        params=[("q", "vat"), ("period", "Old Babylonian"), ("period", "Uruk IV"), ("period", "Uruk IV")],
+    )  # fmt: skip
+    assert first.content == second.content
+    assert len(snapshot._pages) == 1
+    assert page_key(SearchQuery(q="a b")) != page_key(SearchQuery(q="a"))
+    assert page_key(SearchQuery(page=1)) != page_key(SearchQuery(page=2))
+    assert page_key(SearchQuery(sort="id")) != page_key(SearchQuery(sort="-id"))
+
+
+def test_a_page_rendered_across_a_write_is_not_cached(world, catalogue):
+    snapshot = FacetSnapshot()
+    renders = []
+
+    def render_with_a_write_meanwhile():
+        renders.append(1)
+        snapshot.invalidate()  # as a commit of this process would
+        snapshot.refresh(session)  # and another request reloads the snapshot at once
+        return b"stale"
+
+    def render():
+        renders.append(1)
+        return b"fresh"
+
+    with world.session() as session:
+        key = page_key(SearchQuery())
+        assert snapshot.cached_page(session, None, key, render_with_a_write_meanwhile) == b"stale"
+        assert snapshot.cached_page(session, None, key, render) == b"fresh"
+        assert snapshot.cached_page(session, None, key, render) == b"fresh"
+    assert len(renders) == 2
+
+
+def test_page_cache_is_bounded(world, catalogue, monkeypatch):
+    monkeypatch.setattr(FacetSnapshot, "PAGE_CACHE_SIZE", 3)
+    monkeypatch.setattr(FacetSnapshot, "PAGE_CACHE_BYTES", 10)
+    snapshot = FacetSnapshot()
+    with world.session() as session:
+        for page in range(1, 6):
+            snapshot.cached_page(session, None, page_key(SearchQuery(page=page)), lambda: b"1234")
+        # 4 bytes each: two fit in 10 bytes, the most recent ones
+        assert len(snapshot._pages) == 2 and snapshot._pages_bytes == 8
+        assert [k[-1][4] for k in snapshot._pages] == [4, 5]
