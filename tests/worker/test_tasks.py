@@ -17,7 +17,7 @@ from backend import jobs
 from backend.db import migrate
 from backend.settings import Settings
 from backend.storage import ObjectNotFound, StorageError, storage_from_settings
-from backend.tables import Job, JobState, Model, Scan, Tablet
+from backend.tables import Job, JobKind, JobState, Model, Scan, Tablet
 from worker import celery_app as capp
 from worker import tasks
 
@@ -94,6 +94,18 @@ def test_reconstruction_job_stores_one_model_with_assets_and_redelivery_is_a_no_
     with capp.session_factory()() as session:
         assert session.scalar(select(func.count()).select_from(Model)) == 1
     assert _row(job_id).attempts == 1
+
+    # A derive job (re)makes the assets of the scan's latest model, in place.
+    with capp.session_factory()() as session:
+        derive = jobs.create(session, scan=session.get(Scan, job.scan_id), kind=JobKind.derive)
+        session.commit()
+        derive_id = derive.id
+    assert tasks.derive_assets.apply(args=[derive_id]).get() == "succeeded"
+    derived = _row(derive_id)
+    assert derived.state == JobState.succeeded and derived.model_id == model.id
+    with capp.session_factory()() as session:
+        assert session.scalar(select(func.count()).select_from(Model)) == 1
+        assert "accessibility.png" in session.get(Model, model.id).assets
 
 
 def test_a_job_running_with_a_live_heartbeat_is_left_alone(env):
