@@ -85,24 +85,37 @@ def _place_without_pose(scans, transforms, k, coarse, voxel, seed) -> tuple[np.n
 def _initial(scans, coarse, voxel, seed) -> tuple[list[np.ndarray], list[str]]:
     transforms: list[np.ndarray | None] = [None] * len(scans)
     init = [""] * len(scans)
-    posed = [(s, s.pose.T) for s in scans if s.pose is not None]
+    # Without a pose, a face label is the rotation prior (its standard orientation); the
+    # leave-one-out search below corrects it as it corrects a wrong pose.
+    rots = [
+        s.pose.T
+        if s.pose is not None
+        else FACE_ROTATIONS[s.face].T
+        if s.face in FACE_ROTATIONS
+        else None
+        for s in scans
+    ]
+    posed = [(s, r) for s, r in zip(scans, rots, strict=True) if r is not None]
     for i, s in enumerate(scans):  # first the scans whose axes others' silhouettes measure
-        if s.pose is not None:
+        if rots[i] is not None:
             others = [(c, r) for c, r in posed if c is not s]
-            transforms[i] = centring_transform(s, s.pose.T, others)
-            init[i] = "pose"
+            transforms[i] = centring_transform(s, rots[i], others)
+            init[i] = "pose" if s.pose is not None else "face"
     for i, s in enumerate(scans):  # then oblique ones, against the tablet placed so far
-        if s.pose is not None and transforms[i] is None:
+        if rots[i] is not None and transforms[i] is None:
             placed = _placed_points(scans, transforms)
             if placed is None:
                 raise ValueError(f"{s.label}: cannot place from its pose alone")
-            transforms[i] = centring_transform(s, s.pose.T, placed_mm=placed)
+            transforms[i] = centring_transform(s, rots[i], placed_mm=placed)
     if all(t is None for t in transforms):
         a = next((i for i, s in enumerate(scans) if s.face == "obverse"), 0)
         rot = FACE_ROTATIONS.get(scans[a].face, np.eye(3)).T
-        transforms[a] = centring_transform(scans[a], rot) or centring_transform(
-            scans[a], rot, placed_mm=scans[a].points_mm - scans[a].points_mm.mean(0)
-        )
+        t = centring_transform(scans[a], rot)
+        if t is None:  # nothing measures its depth: centre on its own points
+            t = centring_transform(
+                scans[a], rot, placed_mm=scans[a].points_mm - scans[a].points_mm.mean(0)
+            )
+        transforms[a] = t
         init[a] = "anchor"
     for k in range(len(scans)):
         if transforms[k] is None:
@@ -143,6 +156,29 @@ def _leave_one_out(scans, transforms, distances, voxel, labels_moved) -> list[np
         if res.fitness > fitness[k]:
             labels_moved.append(scans[k].label)
             out[k] = res.transform
+    return out
+
+
+def _polish(scans, clouds, transforms, distance_mm, rounds) -> list[np.ndarray]:
+    """Each scan at full density against all the others at full density (no thinning: the
+    overlaps are narrow bands a few samples wide), at the finest distance. The pose graph's
+    pairwise edges each see one band; the union of all others constrains every direction
+    at once (measured: 0.08° → 0.03° largest relative rotation error on the simulator)."""
+    out = list(transforms)
+    for _ in range(rounds):
+        for k in range(len(scans)):
+            others = [
+                transform_points(t, s.points_mm)
+                for i, (s, t) in enumerate(zip(scans, out, strict=True))
+                if i != k
+            ]
+            normals = [
+                s.normals @ t[:3, :3].T
+                for i, (s, t) in enumerate(zip(scans, out, strict=True))
+                if i != k
+            ]
+            target = point_cloud(np.concatenate(others), np.concatenate(normals))
+            out[k] = icp(clouds[k], target, out[k], distances_mm=(distance_mm,)).transform
     return out
 
 
@@ -202,10 +238,12 @@ def register_scans(
 
     1. Place each scan: from ``pose`` (centred, :func:`centring_transform`), else by the face
        label's standard orientation or FPFH features, whichever ICP fits best.
-    2. ``rounds`` × each scan against the union of the others, multi-start ICP (starts turned
-       by 20° about 14 axes): corrects a recorded pose that is tens of degrees wrong.
+    2. ``loo_rounds`` × each scan against the union of the others, coarse to fine (1/25 of
+       the tablet → 0.7 pixel); a scan fitting far worse than the rest is searched again
+       from starts turned by 20° about 14 axes (a recorded pose tens of degrees wrong).
     3. ``rounds`` × pairwise ICP on every overlapping pair (fitness ≥ ``min_overlap``) at
-       3 pixel sizes, then the pose graph over all pairs.
+       0.7 pixel, then the pose graph over all pairs; then ``rounds`` × each scan against
+       all others at full density and 0.7 pixel (:func:`_polish`).
     4. The tablet frame's origin is put at the centre of the registered points' bounding box;
        its orientation is that of the poses (or of the anchor scan's face).
     """
@@ -228,10 +266,13 @@ def register_scans(
         transforms = _leave_one_out(scans, transforms, loo, pixel_mm, restarted)
     clouds = [cloud_of(s) for s in scans]
     anchor = next((i for i, how in enumerate(init) if how in ("anchor", "pose")), 0)
+    if "pose" not in init:  # no pose at all: the obverse (else the first) scan is the anchor
+        anchor = next((i for i, s in enumerate(scans) if s.face == "obverse"), 0)
     edges = []
     for _ in range(rounds):
         edges = _pairwise(clouds, transforms, (fine_mm,), min_overlap)
         transforms = _pose_graph(transforms, edges, anchor, fine_mm)
+    transforms = _polish(scans, clouds, transforms, fine_mm, rounds)
     all_pts = np.concatenate(
         [transform_points(t, s.points_mm) for s, t in zip(scans, transforms, strict=True)]
     )
