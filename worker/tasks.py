@@ -280,6 +280,7 @@ def _derive(beat: _Beat, job: Job) -> str:
             }
             db_job = session.get(Job, job.id, with_for_update=True)
             db_job.state, db_job.progress, db_job.model_id = JobState.succeeded, 1.0, model_id
+            db_job.finished_at = jobs._now()
             session.commit()
         return "succeeded"
     finally:
@@ -329,5 +330,6 @@ def _finish_noop(job_id: int) -> str:
     with capp.session_factory()() as session:
         db_job = session.get(Job, job_id, with_for_update=True)
         db_job.state, db_job.progress = JobState.succeeded, 1.0
+        db_job.finished_at = jobs._now()
         session.commit()
     return "succeeded"
