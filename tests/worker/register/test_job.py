@@ -1,0 +1,88 @@
+"""The tablet registration job through worker.tasks.register_tablet (in-process)."""
+
+from __future__ import annotations
+
+import pytest
+
+from backend import jobs
+from backend.db import migrate
+from backend.settings import Settings
+from backend.storage import storage_from_settings
+from backend.tables import Job, JobKind, JobState, Model, Scan, Tablet
+from worker import celery_app as capp
+from worker import tasks
+
+from .synthetic import write_gt_model_dirs
+
+
+@pytest.fixture
+def env(tmp_path):
+    settings = Settings(data_dir=tmp_path / "data", _env_file=None, job_stale_after_s=30)
+    migrate(settings.resolved_database_url)
+    previous = capp.settings
+    capp.configure(settings)
+    yield settings
+    capp.configure(previous)
+
+
+def _tablet_with_models(settings, model_dirs) -> int:
+    storage = storage_from_settings(settings)
+    with capp.session_factory()() as session:
+        tablet = Tablet(designation="P000001")
+        session.add(tablet)
+        session.flush()
+        for i, d in enumerate(model_dirs):
+            scan = Scan(
+                tablet_id=tablet.id,
+                face=d.name,
+                bundle_key=f"scans/{i}",
+                bundle_sha256="0" * 64,
+                size_bytes=1,
+            )
+            session.add(scan)
+            session.flush()
+            job = jobs.create(session, scan=scan)
+            job.state = JobState.succeeded
+            prefix = f"models/{tablet.id}/{d.name}/v1"
+            storage.put_tree(prefix, d)
+            session.add(
+                Model(
+                    scan_id=scan.id,
+                    tablet_id=tablet.id,
+                    job_id=job.id,
+                    version=1,
+                    storage_prefix=prefix,
+                )
+            )
+        job = jobs.create(session, tablet_id=tablet.id, kind=JobKind.register)
+        session.commit()
+        return job.id
+
+
+@pytest.mark.slow
+def test_register_job_stores_a_tablet_model_with_plates(env, tmp_path):
+    dirs, _ = write_gt_model_dirs(tmp_path / "models", size=(64, 52))
+    job_id = _tablet_with_models(env, dirs)
+    assert tasks.register_tablet.apply(args=[job_id]).get() == "succeeded"
+    with capp.session_factory()() as session:
+        job = session.get(Job, job_id)
+        model = session.get(Model, job.model_id)
+        assert model.scan_id is None and model.tablet_id == job.tablet_id
+        for name in (
+            "model.glb",
+            "tablet.glb",
+            "merged.ply",
+            "transforms.json",
+            "fatcross/P000001.png",
+        ):
+            assert name in model.assets, name
+        assert model.report["pairs"]
+
+
+def test_register_job_with_one_model_fails_with_a_message(env, tmp_path):
+    dirs, _ = write_gt_model_dirs(tmp_path / "models", size=(48, 40), faces=["obverse"])
+    job_id = _tablet_with_models(env, dirs)
+    assert tasks.register_tablet.apply(args=[job_id]).get() == "failed"
+    with capp.session_factory()() as session:
+        job = session.get(Job, job_id)
+        assert job.state == JobState.failed and "two or more scans" in job.error

@@ -1,0 +1,90 @@
+"""The registration job of a whole tablet (called by ``worker.tasks.register_tablet``).
+
+Fetches the latest model of each scan of the job's tablet, registers them
+(:func:`worker.register.run.register_model_dirs`) and stores the result as a tablet-level
+model (no scan) through ``backend.jobs.mark_succeeded``: its assets are ``model.glb`` (the
+one-node-per-face scene, so the viewer shows the whole tablet), ``merged.ply``,
+``transforms.json``, ``report.json`` and ``fatcross/*.png``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+from sqlalchemy import select
+
+from backend import jobs
+from backend.tables import Job, Model, Tablet
+from worker.register.io import RegisterInputError, write_output_dir
+from worker.register.run import register_model_dirs
+
+__all__ = ["MODEL_FILES", "run_job"]
+
+MODEL_FILES = ("report.json", "height.npy", "normals.npy", "mask.png", "albedo.png")
+
+
+def _latest_models(session, tablet_id: int) -> list[tuple[int, str]]:
+    """(scan id, storage prefix) of the newest model of every scan of the tablet."""
+    rows = session.execute(
+        select(Model.scan_id, Model.storage_prefix, Model.version)
+        .where(Model.tablet_id == tablet_id, Model.scan_id.is_not(None))
+        .order_by(Model.scan_id, Model.version)
+    ).all()
+    latest: dict[int, str] = {}
+    for scan_id, prefix, _ in rows:
+        latest[scan_id] = prefix
+    return sorted(latest.items())
+
+
+def _fail(session_factory, job_id: int, message: str) -> str:
+    with session_factory() as session, contextlib.suppress(jobs.JobStateError):
+        jobs.mark_failed(session, job_id=job_id, error=message)
+    return "failed"
+
+
+def run_job(job_id: int, session_factory, storage, progress: Callable[..., None]) -> str:
+    """Register the tablet of job ``job_id``; "succeeded" or "failed" (with a message)."""
+    with session_factory() as session:
+        job = session.get(Job, job_id)
+        if job is None:
+            raise LookupError(f"job {job_id}: not found")
+        tablet = session.get(Tablet, job.tablet_id)
+        name = (tablet.designation if tablet is not None else None) or f"tablet-{job.tablet_id}"
+        models = _latest_models(session, job.tablet_id)
+    if len(models) < 2:
+        return _fail(
+            session_factory,
+            job_id,
+            f"registration needs models of two or more scans; the tablet has {len(models)}",
+        )
+    work = Path(tempfile.mkdtemp(prefix=f"hammurabi-register-{job_id}-"))
+    try:
+        progress("fetch", 0.05, force=True)
+        dirs = []
+        for scan_id, prefix in models:
+            d = work / f"scan-{scan_id}"
+            d.mkdir()
+            for file in MODEL_FILES:
+                if storage.exists(f"{prefix}/{file}"):
+                    storage.get_file(f"{prefix}/{file}", d / file)
+            dirs.append(str(d))
+        progress("register", 0.2, force=True)
+        safe = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in name)
+        try:
+            files, report = register_model_dirs(dirs, name=safe)
+        except (RegisterInputError, ValueError) as exc:
+            return _fail(session_factory, job_id, f"registration: {exc}")
+        files["model.glb"] = files["tablet.glb"]
+        out = write_output_dir(work / "out", files)
+        progress("store", 0.9, force=True)
+        with session_factory() as session:
+            jobs.mark_succeeded(
+                session, job_id=job_id, model_dir=out, storage=storage, report=report
+            )
+        return "succeeded"
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
