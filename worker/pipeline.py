@@ -25,7 +25,7 @@ from worker.recon.fusion_paper import fuse_paper
 from worker.recon.height import fill_holes
 from worker.recon.integrate import integrate_normals
 from worker.recon.mask import tablet_mask
-from worker.recon.quality import fringe_sigma_um, normal_sigma_rad
+from worker.recon.quality import crease_sigma_um, fringe_sigma_um, normal_sigma_rad
 
 __all__ = ["FUSIONS", "SURFACES", "ReconstructionError", "reconstruct_bundle", "surface_of"]
 
@@ -148,6 +148,8 @@ def surface_of(
         return h, _unit_normals(meas.normals, h, mask, s), "normals"
     sig_n = normal_sigma_rad(meas.residual, meas.lights_used, polar_deg=meas.photometric_polar_deg)
     sig_f, sigma_f = fringe_sigma_um(meas.fringe_height_um, mask, azimuths_used=meas.azimuths_used)
+    crease = crease_sigma_um(meas.normals, pixel_size_um=s)
+    sig_f = np.sqrt(np.square(sig_f) + np.square(crease)).astype(np.float32)
     if fusion == "paper":
         sig_n_typ = float(np.median(sig_n[mask & np.isfinite(sig_n)]))
         h, _ = fuse_paper(

@@ -188,3 +188,18 @@ def test_normal_noise_follows_residual_and_light_count():
     assert sig[0, 0] == pytest.approx(0.0183, rel=0.01)
     assert np.isfinite(sig[0, 1])  # 3 lights: the image's typical noise
     assert np.isinf(sig[0, 2])
+
+
+def test_crease_error_is_zero_on_planes_and_large_at_a_v_groove():
+    # Plane: zero Laplacian. V-groove with slopes ±0.5 (Δg = 1): the central difference gives
+    # ∇²h = 1/(2s) at the two pixels beside the crease, so s²|∇²h|/8 = s/16 = 1.25 µm at s = 20.
+    from worker.recon.quality import crease_sigma_um
+
+    gx = np.where(np.arange(20) < 10, -0.5, 0.5)[None, :].repeat(8, 0)
+    got = crease_sigma_um(_normals(gx, np.zeros_like(gx)), pixel_size_um=S_UM)
+    np.testing.assert_allclose(got[:, [0, 5, 15, 19]], 0, atol=1e-5)
+    np.testing.assert_allclose(got[:, [9, 10]], S_UM / 16, rtol=1e-4)
+    plane = crease_sigma_um(
+        _normals(np.full((5, 6), 0.3), np.full((5, 6), -0.2)), pixel_size_um=S_UM
+    )
+    np.testing.assert_allclose(plane, 0, atol=1e-5)
