@@ -17,7 +17,7 @@ from datetime import UTC, datetime
 from email.utils import format_datetime, parsedate_to_datetime
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Path, Request, Response
+from fastapi import APIRouter, Depends, Path, Query, Request, Response
 from fastapi.responses import JSONResponse, StreamingResponse
 from fastapi.routing import APIRoute
 from pydantic import BaseModel
@@ -128,6 +128,28 @@ def get_readable_model(
 
 
 ReadableModel = Annotated[Model, Depends(get_readable_model)]
+
+
+@router.get("", response_model=list[ModelOut])
+def list_tablet_models(
+    tablet_id: Annotated[int, Query(ge=1)],
+    session: SessionDep,
+    user: OptionalUser,
+    settings: SettingsDep,
+) -> list[ModelOut]:
+    """The tablet-level models of a tablet (registration of all its scans: whole-tablet GLB,
+    merged surface, fatcross plates), oldest version first; 404 if the tablet is not visible."""
+    check_tablet_access(
+        session, user, tablet_id, what=f"tablet {tablet_id}", where="tablet_id", edit=False
+    )
+    from sqlalchemy import select
+
+    rows = session.scalars(
+        select(Model)
+        .where(Model.tablet_id == tablet_id, Model.scan_id.is_(None))
+        .order_by(Model.version)
+    )
+    return [ModelOut.of(m, api_prefix=settings.api_prefix) for m in rows]
 
 
 @router.get("/{model_id}", response_model=ModelOut)
