@@ -251,8 +251,12 @@ class FacetSnapshot:
     def refresh(self, session: Session) -> None:
         now = time.monotonic()
         with self._lock:
-            if self._signature is not None and now - self._checked_at < self.CHECK_INTERVAL_S:
-                return
+            if self._signature is not None:
+                if now - self._checked_at < self.CHECK_INTERVAL_S:
+                    return
+                # One request checks; the others meanwhile use the snapshot they may use
+                # anyway (CHECK_INTERVAL_S stale) instead of all running the same query.
+                self._checked_at = now
         signature = tuple(
             session.execute(
                 select(func.count(Tablet.id), func.max(Tablet.id), func.max(Tablet.updated_at))
