@@ -22,6 +22,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import urllib.parse
 import uuid
 from pathlib import Path
 
@@ -141,6 +142,49 @@ async def load(base: str, *, clients: int, requests: int, seconds: float):
     return results, wall_s, retries
 
 
+WRK_SCRIPT = """
+paths = {%s}
+i = 0
+request = function()
+  i = i %% #paths + 1
+  return wrk.format("GET", paths[i])
+end
+done = function(summary, latency, requests)
+  local e = summary.errors
+  io.write(string.format(
+    "| wrk (all kinds, in turn) | %%d | %%.1f | %%.1f | %%.1f |\\n\\n" ..
+    "%%d requests in %%.1f s: %%.0f requests/s; errors %%d, non-2xx %%d\\n",
+    summary.requests, latency:percentile(50) / 1000, latency:percentile(95) / 1000,
+    latency.max / 1000, summary.requests, summary.duration / 1e6,
+    summary.requests / (summary.duration / 1e6),
+    e.connect + e.read + e.write + e.timeout, e.status))
+end
+"""
+
+
+def run_wrk(base: str, *, clients: int, seconds: float, tmp: str) -> None:
+    """The same pages from ``wrk`` (C, one thread): a load generator that leaves the CPU to
+    the server (the httpx clients cost more CPU per request than the server does)."""
+    paths = [
+        f"/api/v1/tablets?{urllib.parse.urlencode(dict(params, page=page))}"
+        for params_list in QUERIES.values()
+        for params in params_list
+        for page in (1, 2, 3)
+    ]
+    script = Path(tmp) / "search.lua"
+    script.write_text(WRK_SCRIPT % ", ".join(f'"{p}"' for p in paths))
+    print("| query | requests | p50 (ms) | p95 (ms) | max (ms) |\n|---|---:|---:|---:|---:|")
+    sys.stdout.flush()
+    cmd = ["wrk", "-t1", f"-c{clients}", "-s", str(script), base]
+    # warm-up (every page rendered once), not counted
+    subprocess.run([*cmd, "-d3s"], check=True, stdout=subprocess.DEVNULL)
+    out = subprocess.run(
+        [*cmd, f"-d{int(seconds)}s"], check=True, stdout=subprocess.PIPE, text=True
+    )
+    out = out.stdout
+    print(out[out.index("| wrk") :].rstrip() if "| wrk" in out else out)
+
+
 def percentile(values: list[float], q: float) -> float:
     return statistics.quantiles(values, n=100, method="inclusive")[int(q) - 1]
 
@@ -167,6 +211,12 @@ def main() -> int:
     parser.add_argument("--requests", type=int, default=2000)
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--workers", type=int, default=1, help="server processes")
+    parser.add_argument(
+        "--wrk",
+        action="store_true",
+        help="load from wrk (apt-get install wrk) instead of httpx: a short warm-up run, "
+        "then --seconds of load",
+    )
     args = parser.parse_args()
 
     with tempfile.TemporaryDirectory(prefix="search_load_") as tmp:
@@ -202,6 +252,11 @@ def main() -> int:
             try:
                 base = f"http://127.0.0.1:{port}"
                 wait_until_up(base)
+                if args.wrk:
+                    print(f"database: {args.database}; load from wrk, {args.clients} connections")
+                    run_wrk(base, clients=args.clients, seconds=args.seconds, tmp=tmp)
+                    print(f"load average {os.getloadavg()[0]:.1f}")
+                    return 0
                 cpu_before = cpu_seconds(server.pid)
                 client_before = time.process_time()
                 results, wall_s, retries = asyncio.run(
