@@ -4,7 +4,9 @@ faces so) and one merged, coloured surface.
 Merged surface: screened Poisson reconstruction (Kazhdan & Hoppe, "Screened Poisson surface
 reconstruction", ACM ToG 2013; Open3D ``create_from_point_cloud_poisson``) of all scans'
 oriented, coloured points in the tablet frame; vertices whose Poisson density is in the
-lowest ``trim_quantile`` (surface invented far from any sample) are removed.
+lowest ``trim_quantile`` (surface invented far from any sample) may be removed. The default
+keeps them all: the scans of a whole tablet cover it, and the lowest densities are where
+steep wedge walls were left out of the scans (points tilted > 70°), so trimming made holes.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ def merged_surface(
     transforms: list[np.ndarray],
     *,
     depth: int = 9,
-    trim_quantile: float = 0.02,
+    trim_quantile: float = 0.0,
 ) -> trimesh.Trimesh:
     """Watertight-ish mesh (mm, tablet frame) with vertex colours (uint8 RGBA) and normals."""
     if len(scans) != len(transforms) or not scans:
