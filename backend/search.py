@@ -291,6 +291,21 @@ class FacetSnapshot:
             while len(self._memo) > self.MEMO_SIZE:
                 self._memo.popitem(last=False)
 
+    def peek_page(self, user: User | None, key: tuple) -> bytes | None:
+        """The cached page of :meth:`cached_page`, when the snapshot needs no check now.
+
+        No database access: an async route can call it without leaving the event loop.
+        """
+        now = time.monotonic()
+        with self._lock:
+            if self._signature is None or now - self._checked_at >= self.CHECK_INTERVAL_S:
+                return None
+            full_key = ((self._generation, self._signature), _visibility_key(user), key)
+            body = self._pages.get(full_key)
+            if body is not None:
+                self._pages.move_to_end(full_key)
+            return body
+
     def cached_page(self, session: Session, user: User | None, key: tuple, render) -> bytes:
         """The bytes ``render()`` gives for request ``key`` as seen by ``user``, cached.
 

@@ -13,6 +13,7 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import StreamingResponse
+from starlette.concurrency import run_in_threadpool
 
 from backend import crud
 from backend.api.deps import (
@@ -76,7 +77,7 @@ def _jsonl_lines(rows: list[dict]) -> Iterator[str]:
     response_model=SearchPage,
     responses={200: {"content": {"text/csv": {}, "application/x-ndjson": {}}}},
 )
-def search(
+async def search(
     request: Request,
     session: SessionDep,
     settings: SettingsDep,
@@ -145,10 +146,17 @@ def search(
             # Already validated: serialise once instead of letting response_model re-validate.
             return body.model_dump_json().encode()
 
-        # Pages are cached per viewer scope and dropped when the catalogue changes.
+        # Pages are cached per viewer scope and dropped when the catalogue changes. The
+        # route is async so that a hit is served without a hop to the thread pool.
         key = page_key(query, settings.search_facet_limit, prefix)
-        body = snapshot.cached_page(session, user, key, render)
+        body = snapshot.peek_page(user, key)
+        if body is None:
+            body = await run_in_threadpool(snapshot.cached_page, session, user, key, render)
         return Response(body, media_type="application/json")
+    return await run_in_threadpool(_export, session, query, user, fmt, prefix)
+
+
+def _export(session, query: SearchQuery, user, fmt: str, prefix: str) -> StreamingResponse:
     result = search_tablets(session, query, user=user, with_facets=False, paged=False)
     if result.total > EXPORT_MAX_ROWS:
         raise ApiError(
