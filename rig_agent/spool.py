@@ -30,8 +30,9 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from rig_agent.fsutil import append_line_durable, atomic_write_bytes, atomic_write_json, read_json
+from rig_agent.fsutil import append_line_durable, atomic_write_json, read_json
 from rig_agent.plan import Shot
+from worker.durable import write_file_atomic
 
 KINDS = ("scan", "calibration")
 
@@ -138,7 +139,7 @@ class SpoolScan:
         if shot.key in self.done_keys():
             raise SpoolError(f"frame {shot.file!r} of scan {self.id} is already captured")
         data = encode_png(image)
-        atomic_write_bytes(self.frame_path(shot), data)
+        write_file_atomic(self.frame_path(shot), data)
         return self._journal_append(shot, data)
 
     def _journal_append(self, shot: Shot, data: bytes) -> str:

@@ -25,6 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from worker.durable import write_file_atomic
 from worker.recon.shading_maps import (
     accessibility,
     encode_signed8,
@@ -50,15 +51,6 @@ ASSET_NAMES = (
 
 class AssetError(ValueError):
     """The model directory lacks what the derived assets are made from."""
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 def _png_bytes(image: np.ndarray, name: str) -> bytes:
@@ -119,7 +111,7 @@ def derive_assets(model_dir: str | os.PathLike) -> list[str]:
     written: list[str] = []
 
     def put(name: str, data: bytes) -> None:
-        _atomic_write(model_dir / name, data)
+        write_file_atomic(model_dir / name, data)
         written.append(name)
 
     albedo = _read_rgb(model_dir / "albedo.png")

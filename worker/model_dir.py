@@ -10,14 +10,13 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import uuid
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from worker.durable import npy_bytes, replace_dir_atomic, write_new_file
 from worker.recon.glb import glb_bytes
 from worker.recon.mesh import grid_mesh, ply_bytes
 
@@ -45,18 +44,8 @@ class ModelArrays:
         self.quality = dict(quality)
 
 
-def _write(path: Path, data: bytes) -> None:
-    with open(path, "xb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-
-
 def _npy(path: Path, array: np.ndarray) -> None:
-    with open(path, "xb") as fh:
-        np.save(fh, array)
-        fh.flush()
-        os.fsync(fh.fileno())
+    write_new_file(path, npy_bytes(array))
 
 
 def _png(path: Path, image: np.ndarray) -> None:
@@ -64,15 +53,7 @@ def _png(path: Path, image: np.ndarray) -> None:
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
     if not ok:
         raise OSError(f"{path.name}: PNG encoding failed")
-    _write(path, buf.tobytes())
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    write_new_file(path, buf.tobytes())
 
 
 def write_model_dir(
@@ -89,24 +70,13 @@ def write_model_dir(
     last file), e.g. to record the time spent writing. An existing OUTDIR is replaced only
     once the new one is complete.
     """
-    out = Path(out_dir)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp-{uuid.uuid4().hex}")
-    tmp.mkdir()
-    try:
-        report = _fill(tmp, model, report, max_glb_triangles, finish_report)
-        _fsync_dir(tmp)
-        if out.exists():
-            trash = out.with_name(f".{out.name}.old-{uuid.uuid4().hex}")
-            os.rename(out, trash)
-            os.rename(tmp, out)
-            shutil.rmtree(trash, ignore_errors=True)
-        else:
-            os.rename(tmp, out)
-        _fsync_dir(out.parent)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    written: dict = {}
+
+    def fill(tmp: Path) -> None:
+        written["report"] = _fill(tmp, model, report, max_glb_triangles, finish_report)
+
+    replace_dir_atomic(out_dir, fill)
+    report = written["report"]
     return report
 
 
@@ -126,7 +96,7 @@ def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int, f
     mesh = grid_mesh(h, ok, pixel_size_um=model.pixel_size_um)
     vn = n[mesh.rows, mesh.cols]
     vn = np.where(np.isfinite(vn), vn, np.array([0, 0, -1], np.float32))
-    _write(
+    write_new_file(
         tmp / "mesh.ply",
         ply_bytes(
             mesh.vertices_mm, mesh.faces, normals=vn, colors_rgb8=albedo[mesh.rows, mesh.cols]
@@ -135,7 +105,7 @@ def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int, f
     glb, info = glb_bytes(
         h, ok, n, albedo, pixel_size_um=model.pixel_size_um, max_triangles=max_glb_triangles
     )
-    _write(tmp / "model.glb", glb)
+    write_new_file(tmp / "model.glb", glb)
     (tmp / "quality").mkdir()
     for name, arr in model.quality.items():
         _npy(tmp / "quality" / f"{name}.npy", np.asarray(arr))
@@ -149,5 +119,5 @@ def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int, f
     }
     if finish is not None:
         report = finish(report)
-    _write(tmp / "report.json", json.dumps(report, indent=1, allow_nan=False).encode())
+    write_new_file(tmp / "report.json", json.dumps(report, indent=1, allow_nan=False).encode())
     return report

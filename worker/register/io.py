@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import uuid
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 from PIL.PngImagePlugin import PngInfo
 
+from worker.durable import replace_dir_atomic, write_new_file
 from worker.register.pointcloud import ScanCloud, scan_cloud
 
 __all__ = ["RegisterInputError", "load_model_dir", "png_bytes", "write_output_dir"]
@@ -90,21 +89,10 @@ def write_output_dir(out: str | os.PathLike, files: dict[str, bytes]) -> Path:
     target = Path(out)
     if target.exists() and (not target.is_dir() or any(target.iterdir())):
         raise FileExistsError(f"{target}: exists and is not an empty directory")
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_name(f".{target.name}.tmp-{uuid.uuid4().hex}")
-    tmp.mkdir()
-    try:
+
+    def fill(tmp: Path) -> None:
         for name, data in files.items():
-            p = tmp / name
-            p.parent.mkdir(parents=True, exist_ok=True)
-            with open(p, "xb") as fh:
-                fh.write(data)
-                fh.flush()
-                os.fsync(fh.fileno())
-        if target.exists():
-            target.rmdir()
-        os.rename(tmp, target)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+            write_new_file(tmp / name, data)
+
+    replace_dir_atomic(target, fill)
     return target

@@ -9,10 +9,7 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import sys
-import uuid
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,6 +17,7 @@ import numpy as np
 import trimesh
 
 from worker.bundle import write_bundle
+from worker.durable import npy_bytes, replace_dir_atomic, write_file_atomic, write_new_file
 from worker.simulate.acquisition import PRESETS, frame_file, manifest, pixel_size_for, plan_frames
 from worker.simulate.meshview import MeshTablet, load_mesh, render_mesh_view
 from worker.simulate.noise import NoiseModel, noise_model
@@ -103,41 +101,16 @@ def wedge_records(tablet: Tablet | MeshTablet, view: View) -> list[dict]:
     return out
 
 
-def _fsync_write(path: Path, data: bytes) -> None:
-    with open(path, "xb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-
-
-def _write_npy(path: Path, array: np.ndarray) -> None:
-    with open(path, "xb") as fh:
-        np.save(fh, array)
-        fh.flush()
-        os.fsync(fh.fileno())
-
-
-def _write_dir_atomic(target: Path, fill: Callable[[Path], None]) -> None:
-    tmp = target.with_name(f".{target.name}.tmp-{uuid.uuid4().hex}")
-    tmp.mkdir(parents=True)
-    try:
-        fill(tmp)
-        os.rename(tmp, target)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
 def _write_gt(gt_dir: Path, view: View, tablet: Tablet | MeshTablet) -> None:
     gt = view.ground_truth()
 
     def fill(tmp: Path) -> None:
         for name in ("height", "normals", "albedo", "mask"):
-            _write_npy(tmp / f"{name}.npy", gt[name])
+            write_new_file(tmp / f"{name}.npy", npy_bytes(gt[name]))
         text = json.dumps({"wedges": wedge_records(tablet, view)}, indent=1)
-        _fsync_write(tmp / "wedges.json", text.encode())
+        write_new_file(tmp / "wedges.json", text.encode())
 
-    _write_dir_atomic(gt_dir, fill)
+    replace_dir_atomic(gt_dir, fill)
 
 
 def _check_fringe_range(view: View, preset_polar_deg: float, coarsest_um: float) -> None:
@@ -326,14 +299,10 @@ def simulate_scan(
             "(c·s, r·s, -h) in µm; tablet.ply is in mm in the tablet frame",
             "poses": poses,
         }
-        tmp = out / f".poses.json.tmp-{uuid.uuid4().hex}"
-        _fsync_write(tmp, json.dumps(doc, indent=1).encode())
-        os.replace(tmp, out / "poses.json")
-        tmp = out / f".tablet.ply.tmp-{uuid.uuid4().hex}"
+        write_file_atomic(out / "poses.json", json.dumps(doc, indent=1).encode())
         if isinstance(tablet, MeshTablet):
             solid = trimesh.Trimesh(tablet.vertices_um / 1000.0, tablet.faces, process=False)
         else:
             solid = tablet_mesh(tablet)
-        _fsync_write(tmp, solid.export(file_type="ply"))
-        os.replace(tmp, out / "tablet.ply")
+        write_file_atomic(out / "tablet.ply", solid.export(file_type="ply"))
     return SimulationResult(out, bundles, gts, views, n)
