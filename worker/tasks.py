@@ -8,6 +8,11 @@
 - ``worker.tasks.register_tablet(job_id)``: register a tablet's faces with
   ``worker.register`` when that module exists (another engineer's).
 
+Registration starts by itself: after a reconstruction succeeds (and after a registration
+ends) :func:`schedule_registration` creates and sends ONE register job for the tablet when
+it has models of two or more faces, none is queued or running, and a face model is newer
+than the start of the last registration. Redelivered messages find that job and add none.
+
 Idempotent: the job row is claimed with one conditional UPDATE (``backend.queue.claim``)
 before any work, so a redelivered or duplicated message finishes the same job or does
 nothing; ``models.job_id`` is unique, so one job never makes two model versions. A thread
@@ -31,13 +36,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 from celery.exceptions import SoftTimeLimitExceeded
-from sqlalchemy import select
+from sqlalchemy import exists, func, select
 from sqlalchemy.exc import IntegrityError, OperationalError
 
 from backend import jobs
 from backend.queue import claim, heartbeat
 from backend.storage import StorageError, storage_from_settings
-from backend.tables import Job, JobKind, JobState, Model, Scan
+from backend.tables import Job, JobKind, JobState, Model, Scan, Tablet
 from worker import celery_app as capp
 from worker.assets import AssetError
 from worker.assets import derive_assets as write_derived_assets
@@ -302,12 +307,88 @@ def _register(beat: _Beat, job: Job) -> str:
     return run(job.id, capp.session_factory(), storage_from_settings(capp.settings), beat.progress)
 
 
+def dispatcher() -> jobs.Dispatcher:
+    """Where follow-up jobs go: the broker of the settings (tests replace this function)."""
+    return jobs.dispatcher_from_settings(capp.settings)
+
+
+def _registration_due(session, tablet_id: int) -> bool:
+    """Models of >= 2 faces, no register job queued/running, and a face model it has not seen.
+
+    A registration reads the models when it starts, so it covers the face models created
+    before its latest ``started_at`` (or ``created_at`` if it never started).
+    """
+    face_models = (
+        select(Model.id).join(Scan, Model.scan_id == Scan.id).where(Model.tablet_id == tablet_id)
+    )
+    faces = session.scalar(
+        select(func.count(func.distinct(Scan.face)))
+        .select_from(Model)
+        .join(Scan, Model.scan_id == Scan.id)
+        .where(Model.tablet_id == tablet_id)
+    )
+    if faces < 2:
+        return False
+    register = select(Job).where(Job.tablet_id == tablet_id, Job.kind == JobKind.register)
+    if session.scalar(
+        select(exists(register.where(Job.state.in_([JobState.queued, JobState.running]))))
+    ):
+        return False
+    last = session.scalar(register.order_by(Job.id.desc()).limit(1))
+    if last is None:
+        return True
+    seen_until = last.started_at or last.created_at
+    return bool(session.scalar(select(exists(face_models.where(Model.created_at > seen_until)))))
+
+
+def schedule_registration(tablet_id: int) -> int | None:
+    """Create and send the tablet's register job if one is due (above); its id, or None.
+
+    The tablet row is locked (PostgreSQL) so two faces finishing at once make one job; on
+    SQLite the second writer fails with OperationalError and is retried. A send that fails
+    leaves the job queued: the sweeper re-sends it.
+    """
+    with capp.session_factory()() as session:
+        if session.get(Tablet, tablet_id, with_for_update=True) is None:
+            return None
+        if not _registration_due(session, tablet_id):
+            session.rollback()
+            return None
+        job = jobs.create(session, tablet_id=tablet_id, kind=JobKind.register)
+        session.commit()
+        try:
+            jobs.enqueue(job, dispatcher=dispatcher())
+        except Exception:  # broker down: the job stays queued and the sweeper re-sends it
+            log.exception("tablet %s: register job %s could not be sent", tablet_id, job.id)
+            return job.id
+        jobs.mark_enqueued(session, job_id=job.id)
+        log.info("tablet %s: register job %s queued", tablet_id, job.id)
+        return job.id
+
+
+def _follow_up(task, job_id: int) -> None:
+    """After a job ended: start the tablet's registration if due; never fails the job."""
+    try:
+        with capp.session_factory()() as session:
+            tablet_id = session.scalar(select(Job.tablet_id).where(Job.id == job_id))
+        if tablet_id is not None:
+            schedule_registration(tablet_id)
+    except Exception as exc:
+        if is_transient(exc) and task.request.retries < MAX_RETRIES:
+            # The redelivered task finds its job finished and only repeats this step.
+            raise task.retry(exc=exc, countdown=min(300, 2 ** (task.request.retries + 2))) from None
+        log.exception("job %s: could not schedule the tablet's registration", job_id)
+
+
 _TASK_OPTIONS = {"bind": True, "acks_late": True, "max_retries": MAX_RETRIES}
 
 
 @app.task(name=jobs.TASK_BY_KIND[JobKind.reconstruct], **_TASK_OPTIONS)
 def reconstruct_scan(self, job_id: int) -> str:
-    return _run_job(self, int(job_id), _reconstruct)
+    result = _run_job(self, int(job_id), _reconstruct)
+    if result == "succeeded":  # also on redelivery: a crash may have come before this step
+        _follow_up(self, int(job_id))
+    return result
 
 
 @app.task(name=jobs.TASK_BY_KIND[JobKind.derive], **_TASK_OPTIONS)
@@ -317,7 +398,10 @@ def derive_assets(self, job_id: int) -> str:
 
 @app.task(name=jobs.TASK_BY_KIND[JobKind.register], **_TASK_OPTIONS)
 def register_tablet(self, job_id: int) -> str:
-    return _run_job(self, int(job_id), _register)
+    result = _run_job(self, int(job_id), _register)
+    if result in ("succeeded", "failed"):  # a face may have arrived while it ran
+        _follow_up(self, int(job_id))
+    return result
 
 
 @app.task(name="worker.tasks.noop", bind=True, acks_late=True)
