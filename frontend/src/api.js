@@ -93,6 +93,8 @@ export const iiifManifestUrl = (id) => api(`/tablets/${encodeURIComponent(id)}/i
 export const getScan = (id) => request('GET', api(`/scans/${encodeURIComponent(id)}`));
 export const getJob = (id, { signal } = {}) => request('GET', api(`/jobs/${encodeURIComponent(id)}`), { signal });
 export const retryJob = (id) => request('POST', api(`/jobs/${encodeURIComponent(id)}/retry`));
+/** The tablet-level models (registration of all scans: whole-tablet GLB, fatcross plates). */
+export const tabletModels = (tabletId) => request('GET', api('/models'), { query: { tablet_id: tabletId } });
 export const getModel = (id) => request('GET', api(`/models/${encodeURIComponent(id)}`));
 export const modelAssetUrl = (id, name) =>
   api(`/models/${encodeURIComponent(id)}/assets/${name.split('/').map(encodeURIComponent).join('/')}`);

@@ -93,6 +93,8 @@ function jobText(job) {
   return job.state;
 }
 
+let tabletModels = []; // tablet-level models (scan_id null): the whole tablet
+
 function renderScans(scans) {
   const list = $('scans');
   list.replaceChildren();
@@ -112,6 +114,10 @@ function renderScans(scans) {
       const label = `${scan.face}, version ${m.version ?? m.id}${m.created_at ? ` (${formatDate(m.created_at)})` : ''}`;
       select.append(el('option', { value: m.id }, label));
     }
+  }
+  for (const m of tabletModels) {
+    const label = `Whole tablet, version ${m.version ?? m.id}${m.created_at ? ` (${formatDate(m.created_at)})` : ''}`;
+    select.append(el('option', { value: m.id }, label));
   }
   if (!select.options.length) select.append(el('option', { value: '' }, 'none yet'));
   return scans.some((s) => ['queued', 'running'].includes(s.latest_job?.state));
@@ -134,6 +140,39 @@ function renderDownloads(model) {
     if (url) list.append(el('li', {}, el('a', { href: api.assetHref(url), download: '' }, label)));
   }
   list.append(el('li', {}, el('a', { href: `${api.API_PREFIX}/models/${model.id}` }, 'Model record (JSON API)')));
+}
+
+/** The whole-tablet model's face checkboxes and fatcross plate links (else nothing). */
+function renderFaces(model) {
+  let section = $('faces');
+  if (!section) {
+    section = el('section', { id: 'faces' });
+    $('downloads').closest('section').before(section);
+  }
+  section.replaceChildren();
+  const names = viewer.partNames();
+  const plates = Object.keys(model?.assets ?? {})
+    .filter((n) => /^fatcross\/.+\.png$/.test(n))
+    .sort();
+  section.hidden = !names.length && !plates.length;
+  if (section.hidden) return;
+  section.append(el('h2', {}, 'Faces'));
+  const list = el('ul', { class: 'faces' });
+  for (const name of names) {
+    const box = el('input', { type: 'checkbox', 'data-face': name });
+    box.checked = true;
+    box.addEventListener('change', () => viewer.setPartVisible(name, box.checked));
+    list.append(el('li', {}, el('label', {}, box, ` ${name}`)));
+  }
+  section.append(list);
+  if (plates.length) {
+    section.append(el('p', {}, el('strong', {}, 'Fatcross plates')));
+    const links = el('ul', { class: 'plates' });
+    for (const n of plates) {
+      links.append(el('li', {}, el('a', { href: api.assetHref(model.assets[n]) }, n.slice('fatcross/'.length))));
+    }
+    section.append(links);
+  }
 }
 
 async function showModel(modelId) {
@@ -160,6 +199,7 @@ async function showModel(modelId) {
     currentModel = model;
     $('model-select').value = String(model.id);
     renderDownloads(model);
+    renderFaces(model);
     const restore = restoring;
     restoring = null;
     if (restore && (restore.state.model === null || restore.state.model === model.id)) {
@@ -180,14 +220,22 @@ async function showModel(modelId) {
 }
 
 async function refreshScans({ pickModel }) {
-  const scans = await api.tabletScans(tabletId);
+  const [scans, wholeTablet] = await Promise.all([
+    api.tabletScans(tabletId),
+    // The whole tablet is an extra; the page works without it.
+    api.tabletModels(tabletId).catch(() => []),
+  ]);
+  tabletModels = Array.isArray(wholeTablet) ? wholeTablet : [];
   const list = Array.isArray(scans) ? scans : (scans.items ?? []);
   const busy = renderScans(list);
-  const all = list.flatMap(modelsOf);
+  const faceModels = list.flatMap(modelsOf);
+  const all = faceModels.concat(tabletModels);
   $('empty').hidden = all.length > 0 || busy;
   if (pickModel && all.length) {
     const wanted = restoring?.state.model;
-    const latest = all.reduce((a, b) => ((b.version ?? b.id) > (a.version ?? a.id) ? b : a));
+    // By default the latest face model; the whole tablet when there is nothing else.
+    const pool = faceModels.length ? faceModels : all;
+    const latest = pool.reduce((a, b) => ((b.version ?? b.id) > (a.version ?? a.id) ? b : a));
     const target = all.find((m) => m.id === wanted) ?? latest;
     const missingLinked = wanted != null && target.id !== wanted;
     await showModel(target.id);

@@ -116,10 +116,17 @@ export function robustRange(values) {
   return hi > lo ? [lo, hi] : [lo, lo + 1];
 }
 
+/**
+ * The GLB's meshes as one geometry in the scene's frame. A scene of several nodes (the
+ * whole-tablet model: one node per scanned face) becomes one draw group per mesh, named after
+ * its node (`parts`), so faces can be hidden; its per-node textures are dropped (one albedo
+ * cannot serve all faces), so it is lit by its mesh normals and drawn in clay colour.
+ */
 async function glbToGeometry(buffer) {
   const gltf = await new GLTFLoader().parseAsync(buffer, '');
   gltf.scene.updateMatrixWorld(true);
   const geometries = [];
+  const partNames = [];
   let glbAlbedo = null;
   const junk = new Set();
   gltf.scene.traverse((obj) => {
@@ -131,6 +138,8 @@ async function glbToGeometry(buffer) {
     }
     if (!g.attributes.normal) g.computeVertexNormals();
     geometries.push(g);
+    // A one-primitive node is the Mesh itself; a multi-primitive node is its parent Group.
+    partNames.push(obj.name || obj.parent?.name || '');
     obj.geometry.dispose();
     const mats = Array.isArray(obj.material) ? obj.material : [obj.material];
     for (const m of mats) {
@@ -140,13 +149,31 @@ async function glbToGeometry(buffer) {
     }
   });
   if (!geometries.length) throw new Error('model.glb holds no mesh');
-  junk.delete(glbAlbedo);
+  const multi = geometries.length > 1;
+  if (!multi) junk.delete(glbAlbedo);
+  else glbAlbedo = null;
   for (const t of junk) disposeTexture(t);
-  const geometry = geometries.length === 1 ? geometries[0] : mergeGeometries(geometries, false);
-  if (geometries.length > 1) for (const g of geometries) g.dispose();
+  if (multi) {
+    for (const g of geometries) {
+      // Parts without texture coordinates still merge (uv unused: no image-grid maps).
+      if (!g.attributes.uv) {
+        g.setAttribute('uv', new THREE.BufferAttribute(new Float32Array(g.attributes.position.count * 2), 2));
+      }
+    }
+    if (geometries.some((g) => g.index) && !geometries.every((g) => g.index)) {
+      for (let i = 0; i < geometries.length; i++) {
+        if (!geometries[i].index) continue;
+        const flat = geometries[i].toNonIndexed();
+        geometries[i].dispose();
+        geometries[i] = flat;
+      }
+    }
+  }
+  const geometry = multi ? mergeGeometries(geometries, true) : geometries[0];
+  if (multi) for (const g of geometries) g.dispose();
   if (!geometry) throw new Error('model.glb: its meshes have different attributes');
   if (!geometry.attributes.uv) throw new Error('model.glb has no texture coordinates (TEXCOORD_0)');
-  return { geometry, glbAlbedo };
+  return { geometry, glbAlbedo, parts: multi ? partNames : [] };
 }
 
 function disposeTexture(t) {
@@ -159,8 +186,9 @@ function disposeTexture(t) {
  * Load a model's mesh and first textures.
  * @param {Record<string, string>} assets name → URL
  * @param {{onProgress?: (fraction: number, label: string) => void, signal?: AbortSignal}} options
- * @returns {Promise<object>} {geometry, normals, albedo, curvature, accessibility, quality,
- *   names, ensure(kind), dispose()}
+ * @returns {Promise<object>} {geometry, parts, normals, albedo, curvature, accessibility,
+ *   quality, names, ensure(kind), dispose()}; `parts`: node names of a multi-node GLB, one per
+ *   draw group of `geometry` (empty for a one-mesh model)
  */
 export async function loadModelAssets(assets, { onProgress = () => {}, signal } = {}) {
   const names = classifyAssets(assets);
@@ -181,6 +209,7 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
   const out = {
     names,
     geometry: null,
+    parts: [],
     normals: null,
     albedo: null,
     curvature: null,
@@ -204,8 +233,9 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
       names.normals ? get(names.normals) : null,
       names.albedo ? get(names.albedo) : null,
     ]);
-    const { geometry, glbAlbedo } = await glbToGeometry(glbBuf);
+    const { geometry, glbAlbedo, parts } = await glbToGeometry(glbBuf);
     out.geometry = geometry;
+    out.parts = parts;
     out.normals = normalsBuf ? track(await bytesToTexture(normalsBuf, { srgb: false })) : null;
     if (albedoBuf) {
       out.albedo = track(await bytesToTexture(albedoBuf, { srgb: true }));

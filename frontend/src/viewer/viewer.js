@@ -14,6 +14,7 @@ import { createMarks, pickPoint, projectPoint } from './marks.js';
 import { LAZY_KINDS, missingMessage as missingMessageOf } from './modes.js';
 import { createRelightMaterial, MODE_INDEX } from './material.js';
 import { defaultViewState, SHADING_MODES } from './permalink.js';
+import { createPartToggles } from './parts.js';
 import { canonicalView } from './views.js';
 
 const PERSPECTIVE_FOV_DEG = 30;
@@ -40,6 +41,8 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
   let orthoHalfHeight = 50; // mm visible above the target at zoom 1
 
   const material = createRelightMaterial();
+  // Material 1 of a multi-part mesh: three.js skips draw groups whose material is invisible.
+  const hiddenMaterial = new THREE.MeshBasicMaterial({ visible: false });
   let model = null; // {mesh, assets, box, missing: Set}
   const state = defaultViewState();
   const pendingLoads = new Set();
@@ -312,11 +315,15 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     const { geometry } = loaded;
     geometry.computeBoundingBox();
     geometry.computeBoundingSphere();
-    const mesh = new THREE.Mesh(geometry, material);
+    const multi = loaded.parts.length > 1;
+    const mesh = new THREE.Mesh(geometry, multi ? [material, hiddenMaterial] : material);
     scene.add(mesh);
     const bb = geometry.boundingBox;
     const box = { min: bb.min.toArray(), max: bb.max.toArray() };
-    model = { mesh, assets: loaded, box, radius: geometry.boundingSphere.radius || 1, errors: {} };
+    const parts = multi ? createPartToggles(loaded.parts) : null;
+    // mergeGeometries numbers the groups' materials 0, 1, 2…: map them onto shown/hidden.
+    if (parts) geometry.groups.forEach((g, i) => (g.materialIndex = parts.groupMaterialIndex(i)));
+    model = { mesh, assets: loaded, box, radius: geometry.boundingSphere.radius || 1, errors: {}, parts };
     const u = material.uniforms;
     u.uNormalMap.value = loaded.normals ?? material.userData.blank;
     u.uHasNormalMap.value = Boolean(loaded.normals);
@@ -344,6 +351,23 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     }
     model = null;
     invalidate();
+  }
+
+  // --- parts (faces of the whole-tablet model) ---------------------------------------------
+
+  /** Names of the model's parts (glTF nodes; the faces of a whole-tablet model), or []. */
+  function partNames() {
+    return model?.parts ? [...model.parts.names] : [];
+  }
+
+  /** Show or hide one part; renders (once) only when something changed. */
+  function setPartVisible(name, visible) {
+    if (!model?.parts) throw new RangeError('this model has no parts to show or hide');
+    if (!model.parts.set(name, visible)) return;
+    const parts = model.parts;
+    model.mesh.geometry.groups.forEach((g, i) => (g.materialIndex = parts.groupMaterialIndex(i)));
+    invalidate();
+    onChange('parts');
   }
 
   // --- picking and overlay ----------------------------------------------------------------
@@ -476,6 +500,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     controls.dispose();
     material.userData.blank.dispose();
     material.dispose();
+    hiddenMaterial.dispose();
     renderer.renderLists.dispose();
     renderer.dispose();
   }
@@ -505,6 +530,8 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     memory,
     whenIdle,
     invalidate,
+    partNames,
+    setPartVisible,
     dispose,
     get model() {
       return model;

@@ -1,0 +1,115 @@
+"""The whole-tablet model (registration: one glTF node per scanned face, scan_id null) on the
+tablet page: offered as "Whole tablet", one checkbox per face, hiding a face redraws the
+canvas without it, and the fatcross plates are linked.
+
+Its own library instance: a tablet-level model would change the shared fixture's facet counts
+(has_3d) that test_browser_library.py checks."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+BACKGROUND = np.array([0x1D, 0x1F, 0x24]) / 255  # the viewer's clear colour
+TABLET = "P999003"  # no face models in the seed: the whole tablet is what the page shows
+
+
+def _two_node_model_dir(model_dir: Path) -> None:
+    """model.glb with nodes "obverse" (x < 0) and "reverse" (x > 0): two 18 × 30 × 4 mm slabs
+    side by side in the tablet frame (mm), plus report.json and one fatcross plate."""
+    import trimesh
+    from PIL import Image
+
+    scene = trimesh.Scene()
+    for name, x_mm in (("obverse", -11.0), ("reverse", 11.0)):
+        slab = trimesh.creation.box(extents=(18.0, 30.0, 4.0))
+        slab.apply_translation((x_mm, 0.0, 0.0))
+        scene.add_geometry(slab, node_name=name, geom_name=name)
+    model_dir.mkdir(parents=True)
+    (model_dir / "model.glb").write_bytes(scene.export(file_type="glb"))
+    (model_dir / "report.json").write_text(json.dumps({"scans": ["obverse", "reverse"]}))
+    (model_dir / "fatcross").mkdir()
+    Image.new("RGB", (8, 8), (200, 180, 150)).save(model_dir / "fatcross" / "P999003.png")
+
+
+def _add_tablet_model(library, model_dir: Path) -> int:
+    """A succeeded registration job of TABLET storing ``model_dir``, as the worker stores it."""
+    from backend import jobs
+    from backend.db import make_engine, make_sessionmaker, session_scope
+    from backend.storage import LocalStorage
+    from backend.tables import JobKind
+
+    engine = make_engine(f"sqlite:///{library.data_dir / 'hammurabi.db'}")
+    try:
+        factory = make_sessionmaker(engine)
+        storage = LocalStorage(library.data_dir / "storage")
+        with session_scope(factory) as session:
+            job = jobs.create(session, tablet_id=library.tablets[TABLET], kind=JobKind.register)
+            session.commit()
+            jobs.mark_running(session, job_id=job.id)
+            model = jobs.mark_succeeded(
+                session, job_id=job.id, model_dir=model_dir, storage=storage
+            )
+            return model.id
+    finally:
+        engine.dispose()
+
+
+@pytest.fixture(scope="module")
+def tablet_library(tmp_path_factory, server_module):
+    tmp = tmp_path_factory.mktemp("tablet_model")
+    lib = server_module.start_library(tmp / "lib")
+    try:
+        _two_node_model_dir(tmp / "whole")
+        lib.models["whole"] = _add_tablet_model(lib, tmp / "whole")
+        yield lib
+    finally:
+        lib.stop()
+
+
+def test_whole_tablet_faces_toggle(page, tablet_library, tools):
+    lib = tablet_library
+    page.goto(f"{lib.url}/tablet.html?id={lib.tablets[TABLET]}")
+    page.wait_for_function(
+        "want => document.getElementById('viewer').dataset.loaded === want",
+        arg=str(lib.models["whole"]),
+        timeout=30000,
+    )
+    tools.settle(page)
+    options = page.locator("#model-select option").all_inner_texts()
+    assert any(o.startswith("Whole tablet") for o in options), options
+    boxes = page.locator("#faces input[type=checkbox]")
+    assert boxes.count() == 2
+    assert sorted(boxes.evaluate_all("bs => bs.map(b => b.dataset.face)")) == [
+        "obverse",
+        "reverse",
+    ]
+    plates = page.locator("#faces a").evaluate_all("as => as.map(a => a.getAttribute('href'))")
+    assert any(h.endswith("/assets/fatcross/P999003.png") for h in plates), plates
+    # No normals.png on the whole tablet: the page says it is lit by the mesh normals.
+    assert "mesh normals" in page.locator("#notice").inner_text()
+
+    # The middle third of the rows: clear of the notice (top) and the scale bar (bottom),
+    # which are drawn over the canvas; the 30 mm tall slabs span it.
+    def band(px):
+        h = px.shape[0]
+        return px[h // 3 : 2 * h // 3]
+
+    before = band(tools.canvas_pixels(page))
+    page.locator("#faces input[data-face='reverse']").uncheck()
+    tools.settle(page)
+    after = band(tools.canvas_pixels(page))
+    w = before.shape[1]
+    on_model = lambda px: np.abs(px - BACKGROUND).sum(axis=-1) > 0.05  # noqa: E731
+    # The obverse view has x to the right: the reverse slab (x > 0) fills part of the right
+    # half before and none of it after; the obverse slab (left half) is drawn as before.
+    right_before = on_model(before[:, w // 2 + 4 :]).mean()
+    right_after = on_model(after[:, w // 2 + 4 :]).mean()
+    assert right_before > 0.1, f"the reverse slab covers only {right_before:.1%} before"
+    assert right_after < 0.01, f"{right_after:.1%} of the right half still shows a model"
+    left_changed = np.abs(after[:, : w // 2 - 4] - before[:, : w // 2 - 4]).max()
+    assert left_changed < 0.02, f"the obverse half changed by {left_changed:.3f}"
+    assert page.evaluate("() => window.hammurabi.viewer.partNames().length") == 2
