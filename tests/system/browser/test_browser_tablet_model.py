@@ -24,10 +24,15 @@ def _two_node_model_dir(model_dir: Path) -> None:
     from PIL import Image
 
     scene = trimesh.Scene()
-    for name, x_mm in (("obverse", -11.0), ("reverse", 11.0)):
-        slab = trimesh.creation.box(extents=(18.0, 30.0, 4.0))
-        slab.apply_translation((x_mm, 0.0, 0.0))
-        scene.add_geometry(slab, node_name=name, geom_name=name)
+    obverse = trimesh.creation.box(extents=(18.0, 30.0, 4.0))
+    obverse.apply_translation((-11.0, 0.0, 0.0))
+    scene.add_geometry(obverse, node_name="obverse", geom_name="obverse")
+    # Like worker/register's scene: the reverse's node carries its scan → tablet transform
+    # (turned over the y axis, then moved right), its mesh stays in its own frame.
+    turned = trimesh.transformations.rotation_matrix(np.pi, (0.0, 1.0, 0.0))
+    turned[:3, 3] = (11.0, 0.0, 0.0)
+    reverse = trimesh.creation.box(extents=(18.0, 30.0, 4.0))
+    scene.add_geometry(reverse, node_name="reverse", geom_name="reverse", transform=turned)
     model_dir.mkdir(parents=True)
     (model_dir / "model.glb").write_bytes(scene.export(file_type="glb"))
     (model_dir / "report.json").write_text(json.dumps({"scans": ["obverse", "reverse"]}))
