@@ -195,6 +195,19 @@ class LocalLibrary:
         finally:
             client.close()
 
+    def wait_tablet_model(self, tablet_id: int, *, timeout_s: float) -> dict | None:
+        """Poll until the worker's automatic registration has stored a whole-tablet model."""
+        deadline = time.monotonic() + timeout_s
+        with self.client() as http:
+            while time.monotonic() < deadline:
+                models = http.get("/models", params={"tablet_id": tablet_id})
+                if models.raise_for_status().json():
+                    return models.json()[-1]
+                if self.workers and all(w.poll() is not None for w in self.workers):
+                    raise RuntimeError(f"every worker exited; see {self.logs}")
+                time.sleep(0.5)
+        return None
+
     def wait_jobs(
         self,
         job_ids: list[int],
@@ -273,7 +286,7 @@ def _job_text(row: dict) -> str:
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    progress = Progress(total_steps=6)
+    progress = Progress(total_steps=7)
     data_dir = Path(args.data_dir).resolve()
     if data_dir.exists():
         shutil.rmtree(data_dir)
@@ -324,6 +337,16 @@ def run_demo(args: argparse.Namespace) -> int:
         if failed:
             print("demo: some reconstructions failed:\n  " + "\n  ".join(failed), file=sys.stderr)
             return 1
+        progress.say("registering the six faces into one tablet on the worker (automatic)")
+        whole = library.wait_tablet_model(tablet["id"], timeout_s=args.timeout)
+        if whole is None:
+            print(
+                f"demo: the whole-tablet registration did not finish in {args.timeout:.0f} s; "
+                f"the faces are shown one by one (logs in {library.logs})",
+                file=sys.stderr,
+            )
+        else:
+            print(f"      whole tablet: model {whole['id']}", flush=True)
         url = f"{library.url}/tablet.html?id={tablet['id']}#m={rows[0]['model_id']}"
         progress.say(f"ready: open {url}")
         print(f"DEMO_URL {url}", flush=True)

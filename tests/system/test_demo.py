@@ -47,11 +47,16 @@ def test_demo_reconstructs_a_whole_tablet_and_prints_a_working_url(tmp_path):
     urls = [line.split()[1] for line in result.stdout.splitlines() if line.startswith("DEMO_URL")]
     assert len(urls) == 1 and "/tablet.html?id=" in urls[0]
     assert "CHECK viewer page 200, model.glb 200" in result.stdout
-    assert "[6/6] ready" in result.stdout  # the progress display went through every step
+    assert "[7/7] ready" in result.stdout  # the progress display went through every step
     with sqlite3.connect(data_dir / "hammurabi.db") as db:
-        states = db.execute("SELECT state, count(*) FROM jobs GROUP BY state").fetchall()
+        states = db.execute(
+            "SELECT kind, state, count(*) FROM jobs GROUP BY kind, state ORDER BY kind"
+        ).fetchall()
         faces = {f for (f,) in db.execute("SELECT DISTINCT face FROM scans")}
-        models = db.execute("SELECT count(*) FROM models").fetchone()[0]
-    assert states == [("succeeded", 6)]
+        face_models = db.execute("SELECT count(*) FROM models WHERE scan_id IS NOT NULL")
+        tablet_models = db.execute("SELECT count(*) FROM models WHERE scan_id IS NULL")
+        models = (face_models.fetchone()[0], tablet_models.fetchone()[0])
+    # Six face reconstructions, then the whole-tablet registration the worker starts by itself.
+    assert states == [("reconstruct", "succeeded", 6), ("register", "succeeded", 1)]
     assert faces == {"obverse", "reverse", "top", "bottom", "left", "right"}
-    assert models == 6
+    assert models == (6, 1)
