@@ -57,7 +57,9 @@ export function pickPoint(canvas, camera, object, clientX, clientY) {
     -((clientY - rect.top) / rect.height) * 2 + 1,
   );
   raycaster.setFromCamera(ndc, camera);
-  const hit = raycaster.intersectObject(object, false)[0];
+  // Hidden parts (draw groups with an invisible material) are not there to be picked.
+  const materialOf = (h) => (Array.isArray(object.material) ? object.material[h.face?.materialIndex ?? 0] : object.material);
+  const hit = raycaster.intersectObject(object, false).find((h) => materialOf(h)?.visible !== false);
   if (!hit) return null;
   return { point: hit.point.toArray(), uv: hit.uv ? hit.uv.toArray() : null };
 }

@@ -103,10 +103,15 @@ def test_whole_tablet_faces_toggle(page, tablet_library, tools):
         h = px.shape[0]
         return px[h // 3 : 2 * h // 3]
 
+    pick = "([x, y]) => window.hammurabi.viewer.pick(x, y)"
+    reverse_centre = tools.screen_of(page, (11.0, 0.0, -2.0))  # its face toward the camera
+    hit = page.evaluate(pick, list(reverse_centre))
+    assert hit is not None and abs(hit["point"][0] - 11.0) < 0.5, hit
     before = band(tools.canvas_pixels(page))
     page.locator("#faces input[data-face='reverse']").uncheck()
     tools.settle(page)
     after = band(tools.canvas_pixels(page))
+    assert page.evaluate(pick, list(reverse_centre)) is None  # hidden faces are not picked
     w = before.shape[1]
     on_model = lambda px: np.abs(px - BACKGROUND).sum(axis=-1) > 0.05  # noqa: E731
     # The obverse view has x to the right: the reverse slab (x > 0) fills part of the right
