@@ -334,6 +334,18 @@ _OPTIONAL_ROWS = {
             params=lambda w, role: {"job_id": w.new_job(w.private_a)},
         ),
     ],
+    "GET /api/v1/models": [
+        Case(
+            "whole-tablet models of private A",
+            expect(404, 404, 200, 404, 200),
+            query=lambda w, role: {"tablet_id": w.private_a},
+        ),
+        Case(
+            "whole-tablet models of public A",
+            expect(200, 200, 200, 200, 200),
+            query=lambda w, role: {"tablet_id": w.public_a},
+        ),
+    ],
     "GET /api/v1/models/{model_id}": [
         Case(
             "model of private A",
