@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import importlib.util
 import os
-from pathlib import Path
 from urllib.parse import urlsplit
 
 import pytest
+import test_jobs as job_helpers  # sibling helpers (tests/backend is on pythonpath)
 
 from backend import jobs
 from backend.iiif import CONTEXT, FaceModel, build_manifest, find_by_id, metadata_entries
@@ -15,16 +14,6 @@ from backend.storage import LocalStorage
 from backend.tables import Tablet
 
 API = "/api/v1"
-
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{name}.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-job_helpers = _load("test_jobs")
 
 
 @pytest.fixture

@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import importlib.util
 import os
-from pathlib import Path
 
 import pytest
+import test_jobs as job_helpers  # sibling helpers (tests/backend is on pythonpath)
 from moto.server import ThreadedMotoServer
 
 from backend import jobs
@@ -14,16 +13,6 @@ from backend.api.models import parse_range
 from backend.storage import LocalStorage, S3Storage
 
 API = "/api/v1"
-
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{name}.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-job_helpers = _load("test_jobs")
 
 
 @pytest.fixture

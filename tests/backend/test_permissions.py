@@ -6,20 +6,11 @@ The matrix lives in permission_matrix.py; a route without a row fails
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 import warnings
-from pathlib import Path
 
+import permission_matrix  # tests/backend is on pythonpath
 from fastapi.testclient import TestClient
 
-# Loaded by path: with --import-mode=importlib the tests folder is not on sys.path.
-_spec = importlib.util.spec_from_file_location(
-    "backend_permission_matrix", Path(__file__).with_name("permission_matrix.py")
-)
-permission_matrix = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = permission_matrix
-_spec.loader.exec_module(permission_matrix)
 MATRIX, ROLES = permission_matrix.MATRIX, permission_matrix.ROLES
 
 

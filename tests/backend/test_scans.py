@@ -2,25 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
+import test_jobs as job_helpers  # sibling helpers (tests/backend is on pythonpath)
 
 from backend import jobs
 from backend.storage import LocalStorage
 
 API = "/api/v1"
-
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{name}.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-job_helpers = _load("test_jobs")
 
 
 @pytest.fixture

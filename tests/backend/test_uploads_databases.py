@@ -3,30 +3,16 @@
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import threading
-from pathlib import Path
 
 import pytest
+import test_uploads as helpers  # the bundle helpers (tests/backend is on pythonpath)
 
 from backend.jobs import RecordingDispatcher
 from backend.tables import Upload
 from backend.uploads import record_range
 
 API = "/api/v1"
-
-
-def _load_helpers():
-    # The bundle helpers live in test_uploads.py; load that module by path (importlib mode).
-    spec = importlib.util.spec_from_file_location(
-        "upload_helpers", Path(__file__).with_name("test_uploads.py")
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-helpers = _load_helpers()
 
 
 def test_protocol_on_each_database(client, world, app, tmp_path):
