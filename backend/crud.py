@@ -194,17 +194,8 @@ def visible_clause(user: User | None) -> ColumnElement[bool]:
 
 
 def can_read_tablet(user: User | None, tablet: Tablet) -> bool:
-    if tablet.is_public:
-        return True
-    if user is None:
-        return False
-    if user.role == Role.admin:
-        return True
-    return (
-        user.role == Role.staff
-        and user.institution_id is not None
-        and tablet.institution_id == user.institution_id
-    )
+    # Private records are seen exactly by those who may edit them: their institution, admins.
+    return tablet.is_public or can_edit_tablet(user, tablet)
 
 
 def can_edit_tablet(user: User | None, tablet: Tablet) -> bool:
