@@ -158,9 +158,10 @@ function renderFaces(model) {
   if (section.hidden) return;
   section.append(el('h2', {}, 'Faces'));
   const list = el('ul', { class: 'faces' });
+  const hidden = new Set(viewer.getState().hidden);
   for (const name of names) {
     const box = el('input', { type: 'checkbox', 'data-face': name });
-    box.checked = true;
+    box.checked = !hidden.has(name);
     box.addEventListener('change', () => viewer.setPartVisible(name, box.checked));
     list.append(el('li', {}, el('label', {}, box, ` ${name}`)));
   }
@@ -199,16 +200,16 @@ async function showModel(modelId) {
     currentModel = model;
     $('model-select').value = String(model.id);
     renderDownloads(model);
-    renderFaces(model);
     const restore = restoring;
     restoring = null;
+    // The viewer's state names the model, so that its permalink button links this version.
+    viewer.setState({ model: model.id });
     if (restore && (restore.state.model === null || restore.state.model === model.id)) {
-      viewer.setState(restore.state);
-      if (restore.ignored.length) {
-        $('notice').hidden = false;
-        $('notice').textContent = `Parts of the link could not be used: ${restore.ignored.join(', ')}`;
-      }
+      const { unknownParts } = viewer.setState({ ...restore.state, model: model.id });
+      const ignored = restore.ignored.concat(unknownParts.map((n) => `face ${JSON.stringify(n)} (not in this model)`));
+      if (ignored.length) ui.setLinkNotice(`Parts of the link could not be used: ${ignored.join(', ')}.`);
     }
+    renderFaces(model);
     scheduleHash();
     $('viewer').dataset.loaded = String(model.id);
   } catch (err) {
@@ -239,10 +240,7 @@ async function refreshScans({ pickModel }) {
     const target = all.find((m) => m.id === wanted) ?? latest;
     const missingLinked = wanted != null && target.id !== wanted;
     await showModel(target.id);
-    if (missingLinked) {
-      $('notice').hidden = false;
-      $('notice').textContent = `Model ${wanted} of the link is not among this tablet's models: showing the latest.`;
-    }
+    if (missingLinked) ui.setLinkNotice(`Model ${wanted} of the link is not among this tablet's models: showing the latest.`);
   } else if (currentModel) {
     $('model-select').value = String(currentModel.id);
   }
@@ -256,6 +254,7 @@ function reportError(err) {
 }
 
 $('model-select').addEventListener('change', (e) => {
+  ui.setLinkNotice(null); // another version than the link's: its notice no longer applies
   if (e.target.value) showModel(Number(e.target.value));
 });
 window.addEventListener('beforeunload', () => viewer.dispose());

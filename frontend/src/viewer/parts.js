@@ -43,3 +43,25 @@ export function createPartToggles(names) {
     groupMaterialIndex: (i) => (shown.has(unique[i]) ? 0 : 1),
   };
 }
+
+/**
+ * Make exactly the parts named in `hidden` hidden and every other part shown (the hidden faces
+ * of a permalink). Names the model does not have are returned, never thrown: a link may come
+ * from another model version, or be edited by hand.
+ * @param {ReturnType<typeof createPartToggles> | null} toggles null for a one-part model
+ * @param {unknown} hidden part names
+ * @returns {{changed: boolean, unknown: string[]}}
+ */
+export function applyHiddenParts(toggles, hidden) {
+  const wanted = new Set(Array.isArray(hidden) ? hidden.filter((n) => typeof n === 'string') : []);
+  const known = new Set(toggles?.names ?? []);
+  const unknown = [...wanted].filter((n) => !known.has(n));
+  let changed = false;
+  for (const name of toggles?.names ?? []) changed = toggles.set(name, !wanted.has(name)) || changed;
+  return { changed, unknown };
+}
+
+/** Names of the hidden parts, in part order ([] without toggles). */
+export function hiddenParts(toggles) {
+  return toggles ? toggles.names.filter((n) => !toggles.isVisible(n)) : [];
+}

@@ -1,5 +1,6 @@
 /**
- * Permalinks: the viewer state that makes a reading citable — camera, light and shading — as
+ * Permalinks: the viewer state that makes a reading citable — camera, light, shading and the
+ * hidden faces of a whole-tablet model — as
  * the URL fragment of a tablet page (`tablet.html?id=12#m=31&az=45&…`). Pure functions.
  *
  * The fragment is never sent to the server, so a permalink cannot break caching, and it keeps
@@ -26,7 +27,21 @@ export function defaultViewState() {
     camera: null,
     light: { azimuthDeg: 315, polarDeg: 45, intensity: 1, ambient: 0.15, gloss: 0 },
     shading: { mode: 'natural', curvatureScale: 0, exaggeration: 2, quality: null },
+    hidden: [], // names of hidden parts (faces of a whole-tablet model); [] = all shown
   };
+}
+
+export const MAX_HIDDEN_PARTS = 100;
+const MAX_PART_NAME = 200;
+
+/** A part name a link may carry: any text (glTF node names are free) without control characters. */
+function isPartName(name) {
+  return (
+    typeof name === 'string' &&
+    name.length <= MAX_PART_NAME &&
+    name.trim() !== '' &&
+    !/[\u0000-\u001f\u007f]/.test(name)
+  );
 }
 
 const SIG = 7; // significant digits: 0.1 µm on a 100 mm tablet
@@ -66,6 +81,8 @@ export function encodeViewState(state) {
   if (s.curvatureScale) p.set('cs', String(s.curvatureScale));
   p.set('ex', num(s.exaggeration));
   if (s.quality) p.set('qm', s.quality);
+  // One `hide` per name, not a comma list: node names may contain commas.
+  for (const name of state.hidden ?? []) p.append('hide', name);
   return p.toString();
 }
 
@@ -133,5 +150,12 @@ export function decodeViewState(fragment) {
   });
   take('ex', parseNumber(p.get('ex'), 0, 20), (v) => (s.exaggeration = v));
   take('qm', /^[\w.-]{1,100}$/.test(p.get('qm') ?? '') ? p.get('qm') : undefined, (v) => (s.quality = v));
+
+  // Which names exist is known only once the model is loaded: the viewer ignores unknown ones.
+  const hide = p.getAll('hide');
+  const valid = hide.filter(isPartName);
+  const names = [...new Set(valid)];
+  state.hidden = names.slice(0, MAX_HIDDEN_PARTS);
+  if (valid.length !== hide.length || names.length > MAX_HIDDEN_PARTS) ignored.push('hide');
   return { state, ignored };
 }

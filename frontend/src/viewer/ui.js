@@ -266,8 +266,8 @@ export function bindViewerUi(viewer, context) {
     $('projection').setAttribute('aria-pressed', String(viewer.projection === 'perspective'));
     $('projection').textContent = viewer.projection === 'perspective' ? 'Orthographic' : 'Perspective';
     updateLegend(s);
-    const missing = viewer.missingMessage();
-    showNotice(missing);
+    // The link's problems stay up while the map notices come and go with the mode.
+    showNotice([linkNotice, viewer.missingMessage()].filter(Boolean).join(' ') || null);
     updateScaleBar();
     canvas.dataset.mode = s.mode;
     canvas.dataset.azimuth = l.azimuthDeg.toFixed(3);
@@ -297,6 +297,7 @@ export function bindViewerUi(viewer, context) {
     hi.textContent = spec.hi;
     legend.querySelector('.what').textContent = spec.what;
   }
+  let linkNotice = null; // what the page's permalink asked for and could not have
   function showNotice(text) {
     $('notice').hidden = !text;
     $('notice').textContent = text ?? '';
@@ -326,6 +327,11 @@ export function bindViewerUi(viewer, context) {
       $('profile-panel').hidden = true;
     },
     permalink,
+    /** A lasting notice about the opened link (null: none), shown before any map notice. */
+    setLinkNotice(text) {
+      linkNotice = text || null;
+      sync();
+    },
     dispose() {
       window.removeEventListener('keydown', onKey);
       picker.dispose();

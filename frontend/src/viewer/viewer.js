@@ -14,7 +14,7 @@ import { createMarks, pickPoint, projectPoint } from './marks.js';
 import { LAZY_KINDS, missingMessage as missingMessageOf } from './modes.js';
 import { createRelightMaterial, MODE_INDEX } from './material.js';
 import { defaultViewState, SHADING_MODES } from './permalink.js';
-import { createPartToggles } from './parts.js';
+import { applyHiddenParts, createPartToggles, hiddenParts } from './parts.js';
 import { canonicalView } from './views.js';
 
 const PERSPECTIVE_FOV_DEG = 30;
@@ -363,7 +363,10 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
   /** Show or hide one part; renders (once) only when something changed. */
   function setPartVisible(name, visible) {
     if (!model?.parts) throw new RangeError('this model has no parts to show or hide');
-    if (!model.parts.set(name, visible)) return;
+    if (model.parts.set(name, visible)) partsChanged();
+  }
+
+  function partsChanged() {
     const parts = model.parts;
     model.mesh.geometry.groups.forEach((g, i) => (g.materialIndex = parts.groupMaterialIndex(i)));
     invalidate();
@@ -417,11 +420,22 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       },
       light: { ...state.light },
       shading: { ...state.shading },
+      hidden: hiddenParts(model?.parts),
     };
   }
 
-  /** Restore a state from {@link getState} or a permalink (camera null: keep the framing). */
+  /**
+   * Restore a state from {@link getState} or a permalink (camera null: keep the framing;
+   * `hidden` absent: keep the parts as they are, else exactly those parts are hidden).
+   * @returns {{unknownParts: string[]}} hidden names this model has no part for (ignored)
+   */
   function setState(next) {
+    let unknownParts = [];
+    if (Array.isArray(next.hidden)) {
+      const { changed, unknown } = applyHiddenParts(model?.parts ?? null, next.hidden);
+      unknownParts = unknown;
+      if (changed) partsChanged();
+    }
     if (next.model !== undefined) state.model = next.model;
     if (next.light) setLight(next.light);
     if (next.shading) setShading(next.shading);
@@ -441,6 +455,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       makeControls();
       invalidate();
     }
+    return { unknownParts };
   }
 
   /**

@@ -1,5 +1,5 @@
 import { describe, expect, it } from 'vitest';
-import { createPartToggles } from '../../src/viewer/parts.js';
+import { applyHiddenParts, createPartToggles, hiddenParts } from '../../src/viewer/parts.js';
 
 describe('createPartToggles', () => {
   it('shows every part at first', () => {
@@ -31,5 +31,33 @@ describe('createPartToggles', () => {
     const t = createPartToggles(['obverse']);
     expect(() => t.set('left', false)).toThrow(/no part named "left"/);
     expect(() => createPartToggles('obverse')).toThrow(TypeError);
+  });
+});
+
+describe('applyHiddenParts (the hidden faces of a permalink)', () => {
+  it('hides exactly the named parts and shows the others', () => {
+    const t = createPartToggles(['obverse', 'reverse', 'top']);
+    t.set('obverse', false);
+    expect(applyHiddenParts(t, ['top', 'reverse'])).toEqual({ changed: true, unknown: [] });
+    expect(t.visibleNames()).toEqual(['obverse']);
+    expect(hiddenParts(t)).toEqual(['reverse', 'top']); // part order, not the link's
+    expect(applyHiddenParts(t, ['reverse', 'top'])).toEqual({ changed: false, unknown: [] });
+    expect(applyHiddenParts(t, [])).toEqual({ changed: true, unknown: [] });
+    expect(hiddenParts(t)).toEqual([]);
+  });
+
+  it('returns unknown names instead of throwing, and applies the known ones', () => {
+    const t = createPartToggles(['obverse', 'reverse']);
+    expect(applyHiddenParts(t, ['left', 'reverse', 'part 9'])).toEqual({ changed: true, unknown: ['left', 'part 9'] });
+    expect(t.visibleNames()).toEqual(['obverse']);
+  });
+
+  it('copes with a model without parts and with junk', () => {
+    expect(applyHiddenParts(null, ['reverse'])).toEqual({ changed: false, unknown: ['reverse'] });
+    expect(hiddenParts(null)).toEqual([]);
+    const t = createPartToggles(['obverse', 'reverse']);
+    expect(applyHiddenParts(t, 'reverse')).toEqual({ changed: false, unknown: [] });
+    expect(applyHiddenParts(t, [42, null, 'reverse'])).toEqual({ changed: true, unknown: [] });
+    expect(hiddenParts(t)).toEqual(['reverse']);
   });
 });

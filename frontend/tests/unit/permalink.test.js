@@ -23,6 +23,7 @@ function sampleState(i) {
       exaggeration: 1 + i / 2,
       quality: i % 2 ? 'quality_residual.png' : null,
     },
+    hidden: [[], ['reverse'], ['top', 'left edge, 2nd scan'], ['obverse & co', 'r=1#x']][i % 4],
   };
 }
 
@@ -63,5 +64,28 @@ describe('permalink state', () => {
   it('wraps azimuths into [0, 360)', () => {
     expect(decodeViewState('az=-90').state.light.azimuthDeg).toBe(270);
     expect(decodeViewState('az=725').state.light.azimuthDeg).toBe(5);
+  });
+
+  it('records hidden faces one name per key, so any node name survives', () => {
+    const state = defaultViewState();
+    state.hidden = ['reverse', 'a,b', 'x=y&z', 'Ω face #2', '  spaced  '];
+    const fragment = encodeViewState(state);
+    expect(fragment.match(/(^|&)hide=/g)).toHaveLength(5);
+    const { state: back, ignored } = decodeViewState(fragment);
+    expect(ignored).toEqual([]);
+    expect(back.hidden).toEqual(state.hidden);
+    expect(encodeViewState(defaultViewState())).not.toMatch(/hide=/);
+  });
+
+  it('drops unusable hidden-face names, keeps the others and says so', () => {
+    const long = 'x'.repeat(201);
+    const { state, ignored } = decodeViewState(`hide=reverse&hide=&hide=%20&hide=a%0Ab&hide=${long}&hide=top&hide=reverse`);
+    expect(state.hidden).toEqual(['reverse', 'top']);
+    expect(ignored).toEqual(['hide']);
+    const many = Array.from({ length: 150 }, (_, i) => `hide=f${i}`).join('&');
+    const capped = decodeViewState(many);
+    expect(capped.state.hidden).toHaveLength(100);
+    expect(capped.ignored).toEqual(['hide']);
+    expect(decodeViewState('hide=reverse&hide=reverse').ignored).toEqual([]);
   });
 });
