@@ -1,0 +1,70 @@
+"""Measurement stages 1–5 driven from a bundle: photometric normals, colour, fringe heights.
+
+Streams the frames: each group (the photometric frames, the colour frames, one fringe set
+of four phases with its reference set) is decoded in threads while the previous group is
+processed, in float32, and dropped once reduced. Calls the pure functions of `worker.recon`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from collections.abc import Callable
+
+from worker.measure.fringe import measure_fringes
+from worker.measure.photometric import measure_color, measure_photometric
+from worker.measure.result import Measurements, ReconstructionError
+
+__all__ = ["Measurements", "ReconstructionError", "measure_bundle"]
+
+
+def measure_bundle(bundle, *, progress: Callable[[str, float], None]) -> Measurements:
+    """Run stages 1–5 on an open `worker.bundle.Bundle`."""
+    man = bundle.manifest
+    cam = man.camera
+    meas = Measurements(pixel_size_um=float(cam.pixel_size_um), shape=(cam.height, cam.width))
+    meas.scan_info = {
+        "id": man.scan.id,
+        "face": man.scan.face,
+        # scan.pose initialises the registration of a tablet's scans (worker.register).
+        "pose": None if man.scan.pose is None else [list(map(float, r)) for r in man.scan.pose],
+    }
+    obj = [f for f in bundle.frames if f.target == "object"]
+    counts: dict[str, int] = defaultdict(int)
+    for f in bundle.frames:
+        counts[f.kind if f.target == "object" else f"reference_{f.kind}"] += 1
+    meas.used["frames"] = dict(counts)
+    rho_ref = float(man.reference.reflectance)
+
+    t0 = time.perf_counter()
+    progress("fringe", 0.02)
+    fringe = [f for f in obj if f.kind == "fringe"]
+    if fringe:
+        measure_fringes(bundle, fringe, meas, rho_ref, progress)
+    meas.timings["fringe"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    progress("photometric", 0.55)
+    photo = [f for f in obj if f.kind == "photometric"]
+    if len(photo) >= 3:
+        measure_photometric(bundle, photo, meas, rho_ref)
+    elif photo:
+        meas.warnings.append(
+            f"photometric: {len(photo)} object frame(s), at least 3 are needed; normals not computed"
+        )
+    meas.timings["photometric"] = time.perf_counter() - t0
+
+    if meas.normals is None and meas.fringe_height_um is None:
+        raise ReconstructionError(
+            "bundle: nothing to reconstruct (needs ≥ 3 photometric object frames or fringe sets "
+            "with reference frames); frames found: "
+            + (", ".join(f"{k}={v}" for k, v in sorted(counts.items())) or "none")
+        )
+
+    t0 = time.perf_counter()
+    progress("color", 0.75)
+    color = [f for f in obj if f.kind == "color"]
+    if color:
+        measure_color(bundle, color, meas, rho_ref)
+    meas.timings["color"] = time.perf_counter() - t0
+    return meas

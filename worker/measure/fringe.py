@@ -1,0 +1,112 @@
+"""Stages 4–5 from a bundle: fringe phase, temporal unwrapping, heights per azimuth, combined."""
+
+from __future__ import annotations
+
+import warnings
+from collections import defaultdict
+
+import numpy as np
+from scipy import ndimage
+
+from worker.measure.frames import angle_key, prefetch
+from worker.recon.fringe import four_step_phase
+from worker.recon.height import combine_azimuths, height_from_phase
+from worker.recon.unwrap import phase_difference, temporal_unwrap
+
+__all__ = ["measure_fringes"]
+
+
+def _fringe_sets(bundle, fringe, meas):
+    """{(azimuth, polar): [(period, [4 object frames], [4 reference frames]), coarse → fine]}."""
+    sets: dict = defaultdict(lambda: defaultdict(list))
+    for f in fringe:
+        sets[(angle_key(f.azimuth_deg), round(f.polar_deg, 6))][round(f.period_um, 6)].append(f)
+    out = {}
+    for key, by_period in sorted(sets.items()):
+        levels = []
+        for period, frames in sorted(by_period.items(), reverse=True):
+            frames = sorted(frames, key=lambda f: angle_key(f.phase_deg))
+            phases = [angle_key(f.phase_deg) for f in frames]
+            refs = [bundle.reference_of(f) for f in frames]
+            if phases != [0.0, 90.0, 180.0, 270.0]:
+                meas.warnings.append(
+                    f"fringe: azimuth {key[0]}°, period {period} µm: phases {phases} "
+                    "are not 0/90/180/270; set ignored"
+                )
+                continue
+            if any(r is None for r in refs):
+                meas.warnings.append(
+                    f"fringe: azimuth {key[0]}°, period {period} µm has no reference frames; "
+                    "set ignored (the reference phase is needed for heights)"
+                )
+                continue
+            levels.append((period, frames, refs))
+        if levels:
+            out[key] = levels
+    return out
+
+
+def measure_fringes(bundle, fringe, meas, rho_ref, progress):
+    sets = _fringe_sets(bundle, fringe, meas)
+    if not sets:
+        meas.warnings.append("fringe: no usable fringe set; heights not computed")
+        return
+    groups, index = [], []
+    for key, levels in sets.items():
+        for level, (_, frames, refs) in enumerate(levels):
+            groups.append([*frames, *refs])
+            index.append((key, level))
+    heights, weights, mods, ambient = [], [], [], []
+    wrapped: dict = defaultdict(list)
+    finest_mod: dict = {}
+    total = len(groups)
+    for i, stack in enumerate(prefetch(bundle, groups)):
+        key, level = index[i]
+        obj_phase = four_step_phase(stack[:4])
+        ref_phase = four_step_phase(stack[4:])
+        wrapped[key].append(phase_difference(obj_phase.phase_rad, ref_phase.phase_rad))
+        levels = sets[key]
+        if level == len(levels) - 1:
+            finest_mod[key] = obj_phase.modulation
+            with np.errstate(invalid="ignore", divide="ignore"):
+                # Mean level A of the object relative to the reference: ρ·max(0, n·l)/cosθ.
+                a_obj = stack[:4].mean(axis=0)
+                a_ref = stack[4:].mean(axis=0)
+                ambient.append(
+                    np.where(a_ref > 0, a_obj / a_ref * rho_ref, np.nan).astype(np.float32)
+                )
+            dpsi = np.stack(wrapped.pop(key))
+            periods = np.array([p for p, _, _ in levels])
+            un = temporal_unwrap(dpsi, periods)
+            h = height_from_phase(un.dpsi_rad, period_um=float(periods[-1]), polar_deg=key[1])
+            m = finest_mod.pop(key)
+            ok = np.isfinite(h) & (m > 0.1) & (un.order_residual < 0.25)
+            heights.append(np.where(ok, h, np.nan).astype(np.float32))
+            weights.append(np.where(ok, np.square(np.nan_to_num(m)), 0).astype(np.float32))
+            mods.append(np.where(np.isfinite(m), m, np.nan).astype(np.float32))
+        progress("fringe", 0.02 + 0.5 * (i + 1) / total)
+    comb = combine_azimuths(np.stack(heights), np.stack(weights))
+    meas.fringe_height_um = comb.height_um
+    meas.fringe_spread_um = comb.spread_um
+    meas.azimuths_used = comb.azimuths_used
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        meas.modulation = np.nanmax(np.stack(mods), axis=0).astype(np.float32)
+        if meas.albedo is None:
+            meas.albedo = np.nanmax(np.stack(ambient), axis=0).astype(np.float32)
+    meas.rough_height_um = _rough_height(comb.height_um)
+    meas.used["fringe_azimuths_deg"] = sorted({k[0] for k in sets})
+    meas.used["fringe_periods_um"] = {
+        f"{k[0]:g}": [float(p) for p, _, _ in levels] for k, levels in sets.items()
+    }
+    meas.used["fringe_sets"] = sum(len(v) for v in sets.values())
+
+
+def _rough_height(height_um):
+    """Fringe heights made whole and smooth (5×5 median, nearest fill, Gaussian σ = 2 px)."""
+    finite = np.isfinite(height_um)
+    if not finite.any():
+        return None
+    idx = ndimage.distance_transform_edt(~finite, return_distances=False, return_indices=True)
+    filled = height_um[tuple(idx)]
+    return ndimage.gaussian_filter(ndimage.median_filter(filled, size=5), 2.0).astype(np.float32)

@@ -1,0 +1,127 @@
+"""Stages 1–3 from a bundle: flat-fielded shading, photometric normals, colour."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from worker.measure.frames import angle_key
+from worker.recon.color import rgb_reflectance
+from worker.recon.photometric import PhotometricResult, light_directions, photometric_stereo
+from worker.recon.radiometry import flat_field
+
+__all__ = ["measure_color", "measure_photometric"]
+
+HIGHLIGHT_CONE_DEG = 20.0
+
+
+def _source_footprint(ref_stack, frames, height_um, pixel_size_um):
+    """Reference radiance at p′ = p − h·tanθ·u instead of p (in place).
+
+    The light that reaches the surface point above p crossed the reference plane at p′
+    (SCAN_BUNDLE.md): with a non-uniform source the flat field must be read there, or the
+    shading of each light is off by E(p′)/E(p), a few per cent per millimetre of height,
+    which tilts the normals by about a degree.
+    """
+    rows, cols = height_um.shape
+    r, c = np.mgrid[0:rows, 0:cols].astype(np.float32)
+    for k, f in enumerate(frames):
+        shift = height_um * np.float32(np.tan(np.radians(f.polar_deg)) / pixel_size_um)
+        phi = np.radians(f.azimuth_deg)
+        map_x = c - shift * np.float32(np.sin(phi))
+        map_y = r - shift * np.float32(np.cos(phi))
+        ref_stack[k] = cv2.remap(
+            ref_stack[k],
+            map_x,
+            map_y,
+            interpolation=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+    return ref_stack
+
+
+def _shading(bundle, frames, stack, rho_ref, meas, kind):
+    refs = [bundle.reference_of(f) for f in frames]
+    polar = np.array([f.polar_deg for f in frames], np.float64)
+    if all(r is not None for r in refs):
+        ref_stack = bundle.radiance_many(refs)
+        if meas.rough_height_um is not None:
+            ref_stack = _source_footprint(
+                ref_stack, frames, meas.rough_height_um, meas.pixel_size_um
+            )
+        return flat_field(stack, ref_stack, reference_reflectance=rho_ref, polar_deg=polar)
+    meas.warnings.append(
+        f"{kind}: no reference frames; assuming uniform illumination, albedo is relative"
+    )
+    # Without a flat field: s = L·cosθ / (bright level of the brightest frame), one scale for
+    # all frames so that their ratios (which carry the normals) are kept.
+    scale = float(np.nanpercentile(stack, 99.5)) or 1.0
+    return (stack * (np.cos(np.radians(polar))[:, None, None] / scale)).astype(np.float32)
+
+
+def measure_photometric(bundle, photo, meas, rho_ref):
+    stack = bundle.radiance_many(photo)
+    shading = _shading(bundle, photo, stack, rho_ref, meas, "photometric")
+    del stack
+    az = np.array([f.azimuth_deg for f in photo])
+    polar = np.array([f.polar_deg for f in photo])
+    lights = light_directions(az, polar)
+    res = _without_highlights(shading, lights, photometric_stereo(shading, lights))
+    meas.normals = res.normals
+    meas.albedo = res.albedo
+    meas.residual = res.residual
+    meas.lights_used = res.lights_used
+    meas.photometric_polar_deg = float(np.median(polar))
+    meas.used["photometric_azimuths_deg"] = sorted({angle_key(a) for a in az})
+
+
+def _without_highlights(shading, lights, first, *, cone_deg=HIGHLIGHT_CONE_DEG, min_left=4):
+    """Solve again, without the samples seen near the mirror direction of their light.
+
+    A glossy surface (fired clay, consolidants) adds a highlight where the normal is near
+    the half vector h_k = (l_k + v)/|l_k + v| of light k and the camera direction v =
+    (0, 0, −1). Highlights a few per cent above the Lambertian shading pass any outlier test
+    yet tilt the normal by a degree or more; the geometry tells where they can be, so those
+    samples are dropped (NaN) when at least `min_left` lights remain, and the pixels solved
+    again. The cone (20°) is where a Blinn–Phong lobe of exponent ≥ 40 still exceeds 1 % of
+    its peak.
+    """
+    half = lights + np.array([0.0, 0.0, -1.0])
+    half /= np.linalg.norm(half, axis=1, keepdims=True)
+    n = first.normals
+    cos = np.einsum("hwc,kc->khw", np.nan_to_num(n), half.astype(np.float32))
+    near = cos > np.float32(np.cos(np.radians(cone_deg)))
+    left = np.sum(np.isfinite(shading) & ~near, axis=0)
+    redo = near.any(axis=0) & (left >= min_left) & np.all(np.isfinite(n), axis=-1)
+    if not redo.any():
+        return first
+    cleaned = np.where(near & redo[None], np.float32(np.nan), shading)
+    second = photometric_stereo(cleaned, lights, mask=redo)
+    ok = redo & np.all(np.isfinite(second.normals), axis=-1)
+    return PhotometricResult(
+        normals=np.where(ok[..., None], second.normals, first.normals),
+        albedo=np.where(ok, second.albedo, first.albedo),
+        residual=np.where(ok, second.residual, first.residual),
+        lights_used=np.where(ok, second.lights_used, first.lights_used),
+    )
+
+
+def measure_color(bundle, color, meas, rho_ref):
+    if meas.normals is None:
+        meas.warnings.append("color: frames ignored (no normals to divide the shading by)")
+        return
+    stack = bundle.radiance_many(color)
+    shading = _shading(bundle, color, stack, rho_ref, meas, "color")
+    del stack
+    az = np.array([f.azimuth_deg for f in color])
+    polar = np.array([f.polar_deg for f in color])
+    res = rgb_reflectance(
+        shading,
+        [f.channel for f in color],
+        light_directions(az, polar),
+        meas.normals,
+        fallback_albedo=meas.albedo,
+    )
+    meas.rgb_linear = res.rgb
+    meas.used["color_azimuths_deg"] = sorted({angle_key(a) for a in az})
+    meas.used["color_channels"] = sorted({f.channel for f in color})

@@ -1,0 +1,36 @@
+"""What the measurement stages produce, and the error a bundle that cannot be reconstructed raises."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["Measurements", "ReconstructionError"]
+
+
+class ReconstructionError(Exception):
+    """The bundle cannot be reconstructed; the message names the culprit."""
+
+
+@dataclass
+class Measurements:
+    """Per-pixel products of stages 1–5, all (H, W[, 3]) float32 in the spec frame."""
+
+    pixel_size_um: float
+    shape: tuple[int, int]
+    normals: np.ndarray | None = None
+    albedo: np.ndarray | None = None  # grey ρ relative to white (photometric, else fringes)
+    residual: np.ndarray | None = None
+    lights_used: np.ndarray | None = None
+    photometric_polar_deg: float = 45.0
+    rgb_linear: np.ndarray | None = None
+    fringe_height_um: np.ndarray | None = None
+    fringe_spread_um: np.ndarray | None = None
+    azimuths_used: np.ndarray | None = None
+    modulation: np.ndarray | None = None
+    rough_height_um: np.ndarray | None = None  # smooth, filled: where the light came from
+    used: dict = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    timings: dict = field(default_factory=dict)
+    scan_info: dict = field(default_factory=dict)
