@@ -20,28 +20,13 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import os  # noqa: E402
 import shutil  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
-import zipfile  # noqa: E402
 
 from backend.jobs import CeleryDispatcher  # noqa: E402
-from worker.demo import LocalLibrary  # noqa: E402
-
-
-def _variant(zip_path: Path, n: int, directory: Path) -> Path:
-    out = directory / f"bundle-{n}.zip"
-    with zipfile.ZipFile(zip_path) as src, zipfile.ZipFile(out, "w") as dst:
-        for info in src.infolist():
-            data = src.read(info)
-            if info.filename == "manifest.json":
-                manifest = json.loads(data)
-                manifest["scan"]["id"] += f"-{n}"
-                data = json.dumps(manifest).encode()
-            dst.writestr(info, data)
-    return out
+from worker.demo import LocalLibrary, bundle_zip_as_new_scan  # noqa: E402
 
 
 def _wait_ready(library: LocalLibrary, n_workers: int, timeout_s: float = 300) -> None:
@@ -68,7 +53,9 @@ def run_reconstructions(root: Path, zip_path: Path, n_workers: int, n_jobs: int,
     library, tablet_id = _library(root, f"w{n_workers}", env)
     try:
         job_ids = [
-            library.upload_bundle_zip(_variant(zip_path, i, root), tablet_id=tablet_id)["job"]["id"]
+            library.upload_bundle_zip(
+                bundle_zip_as_new_scan(zip_path, i, root), tablet_id=tablet_id
+            )["job"]["id"]
             for i in range(n_jobs)
         ]
         for k in range(n_workers):

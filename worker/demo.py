@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import os
 import shutil
 import signal
@@ -26,6 +27,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -240,6 +242,21 @@ def simulate_tablet_zips(out_dir: Path, *, seed: int, size: tuple[int, int]) -> 
     for face, bundle in result.bundles.items():
         zips[face] = Path(shutil.make_archive(str(out_dir / f"{face}-bundle"), "zip", bundle))
     return zips
+
+
+def bundle_zip_as_new_scan(zip_path: Path, n: int, directory: Path) -> Path:
+    """The same bundle ZIP as another scan (manifest scan.id + "-n"): uploading it makes a new
+    scan and a new job. For load and queue tests that need many distinct scans cheaply."""
+    out = directory / f"bundle-{n}.zip"
+    with zipfile.ZipFile(zip_path) as src, zipfile.ZipFile(out, "w") as dst:
+        for info in src.infolist():
+            data = src.read(info)
+            if info.filename == "manifest.json":
+                manifest = json.loads(data)
+                manifest["scan"]["id"] += f"-{n}"
+                data = json.dumps(manifest).encode()
+            dst.writestr(info, data)
+    return out
 
 
 class Progress:

@@ -17,19 +17,17 @@ broker, in phases, so the service and workers start once:
 
 from __future__ import annotations
 
-import json
 import shutil
 import sqlite3
 import subprocess
 import time
-import zipfile
 from pathlib import Path
 
 import httpx
 import pytest
 
 from backend.jobs import RECONSTRUCT_TASK, CeleryDispatcher
-from worker.demo import LocalLibrary, free_port
+from worker.demo import LocalLibrary, bundle_zip_as_new_scan, free_port
 
 # Short periods so the sweeper acts within seconds (defaults are minutes).
 FAST_SWEEP = {
@@ -90,20 +88,6 @@ def tiny_bundle_zip(tmp_path_factory) -> Path:
     return Path(shutil.make_archive(str(out / "bundle"), "zip", result.bundles["obverse"]))
 
 
-def _variant(zip_path: Path, n: int, directory: Path) -> Path:
-    """The same bundle as another scan (manifest scan.id + suffix): a new scan and job."""
-    out = directory / f"bundle-{n}.zip"
-    with zipfile.ZipFile(zip_path) as src, zipfile.ZipFile(out, "w") as dst:
-        for info in src.infolist():
-            data = src.read(info)
-            if info.filename == "manifest.json":
-                manifest = json.loads(data)
-                manifest["scan"]["id"] += f"-{n}"
-                data = json.dumps(manifest).encode()
-            dst.writestr(info, data)
-    return out
-
-
 def _wait(predicate, *, timeout_s: float, what: str):
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -152,7 +136,7 @@ def test_jobs_survive_killed_workers_duplicates_and_a_lost_broker(
         (tmp_path / "pause").touch()
         workers = [library.start_worker("a"), library.start_worker("b")]
         first = library.upload_bundle_zip(
-            _variant(tiny_bundle_zip, 1, tmp_path), tablet_id=tablet_id
+            bundle_zip_as_new_scan(tiny_bundle_zip, 1, tmp_path), tablet_id=tablet_id
         )
         job1 = first["job"]["id"]
         _wait(lambda: _job(library, job1)["state"] == "running", timeout_s=120, what="job 1")
@@ -166,7 +150,7 @@ def test_jobs_survive_killed_workers_duplicates_and_a_lost_broker(
             what="the duplicate message to be refused",
         )
         second = library.upload_bundle_zip(
-            _variant(tiny_bundle_zip, 2, tmp_path), tablet_id=tablet_id
+            bundle_zip_as_new_scan(tiny_bundle_zip, 2, tmp_path), tablet_id=tablet_id
         )
         job2 = second["job"]["id"]
         _wait(lambda: _job(library, job2)["state"] == "running", timeout_s=60, what="job 2")
@@ -195,7 +179,7 @@ def test_jobs_survive_killed_workers_duplicates_and_a_lost_broker(
         # Phase 3: no worker; job 3 queued; the broker loses it; a new worker recovers it.
         library.kill_worker(workers[1])
         third = library.upload_bundle_zip(
-            _variant(tiny_bundle_zip, 3, tmp_path), tablet_id=tablet_id
+            bundle_zip_as_new_scan(tiny_bundle_zip, 3, tmp_path), tablet_id=tablet_id
         )
         job3 = third["job"]["id"]
         if redis is not None:
