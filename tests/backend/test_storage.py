@@ -14,7 +14,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from moto.server import ThreadedMotoServer
 
-from backend import storage as storage_mod
 from backend.storage import (
     ChecksumMismatch,
     LocalStorage,
@@ -23,6 +22,7 @@ from backend.storage import (
     StorageError,
     check_key,
 )
+from backend.storage import local as storage_mod
 
 
 @pytest.fixture(scope="module")

@@ -17,12 +17,12 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from backend import storage as storage_mod
 from backend import uploads as uploads_mod
 from backend.api import uploads as api_uploads_mod
 from backend.jobs import RECONSTRUCT_TASK, RecordingDispatcher
 from backend.main import create_app
 from backend.storage import LocalStorage
+from backend.storage import local as storage_mod
 from backend.tables import Upload
 from worker.bundle import write_bundle
 
