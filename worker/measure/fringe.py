@@ -9,9 +9,9 @@ import numpy as np
 from scipy import ndimage
 
 from worker.measure.frames import angle_key, prefetch
-from worker.recon.fringe import four_step_phase
-from worker.recon.height import combine_azimuths, height_from_phase
-from worker.recon.unwrap import phase_difference, temporal_unwrap
+from worker.recon.fringe import four_step_phase, intensity_noise, phase_sigma_rad
+from worker.recon.height import consensus_azimuths, height_from_phase
+from worker.recon.unwrap import noise_aware_unwrap, phase_difference
 
 __all__ = ["measure_fringes"]
 
@@ -56,36 +56,46 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress):
         for level, (_, frames, refs) in enumerate(levels):
             groups.append([*frames, *refs])
             index.append((key, level))
-    heights, weights, mods, ambient = [], [], [], []
+    heights, sigmas, mods, ambient = [], [], [], []
     wrapped: dict = defaultdict(list)
-    finest_mod: dict = {}
+    noise: dict = defaultdict(list)
     total = len(groups)
     for i, stack in enumerate(prefetch(bundle, groups)):
         key, level = index[i]
         obj_phase = four_step_phase(stack[:4])
         ref_phase = four_step_phase(stack[4:])
         wrapped[key].append(phase_difference(obj_phase.phase_rad, ref_phase.phase_rad))
+        sig = phase_sigma_rad(obj_phase, intensity_noise(obj_phase.mean, obj_phase.residual))
+        sig_ref = phase_sigma_rad(ref_phase, intensity_noise(ref_phase.mean, ref_phase.residual))
+        # Object and reference noise are independent: variances add in the difference.
+        sig *= sig
+        sig_ref *= sig_ref
+        sig += sig_ref
+        noise[key].append(np.sqrt(sig, out=sig))
         levels = sets[key]
         if level == len(levels) - 1:
-            finest_mod[key] = obj_phase.modulation
             with np.errstate(invalid="ignore", divide="ignore"):
                 # Mean level A of the object relative to the reference: ρ·max(0, n·l)/cosθ.
-                a_obj = stack[:4].mean(axis=0)
-                a_ref = stack[4:].mean(axis=0)
                 ambient.append(
-                    np.where(a_ref > 0, a_obj / a_ref * rho_ref, np.nan).astype(np.float32)
+                    np.where(
+                        ref_phase.mean > 0, obj_phase.mean / ref_phase.mean * rho_ref, np.nan
+                    ).astype(np.float32)
                 )
-            dpsi = np.stack(wrapped.pop(key))
             periods = np.array([p for p, _, _ in levels])
-            un = temporal_unwrap(dpsi, periods)
+            un = noise_aware_unwrap(np.stack(wrapped.pop(key)), np.stack(noise.pop(key)), periods)
             h = height_from_phase(un.dpsi_rad, period_um=float(periods[-1]), polar_deg=key[1])
-            m = finest_mod.pop(key)
-            ok = np.isfinite(h) & (m > 0.1) & (un.order_residual < 0.25)
+            sigma_h = np.abs(
+                height_from_phase(un.sigma_rad, period_um=float(periods[-1]), polar_deg=key[1])
+            )
+            # One level rejected although its fringe was seen is common (a corrupt level, a
+            # blurred finest period); two or more mostly mean an order went wrong before.
+            ok = np.isfinite(h) & (un.conflicts <= 1)
             heights.append(np.where(ok, h, np.nan).astype(np.float32))
-            weights.append(np.where(ok, np.square(np.nan_to_num(m)), 0).astype(np.float32))
+            sigmas.append(np.where(ok, sigma_h, np.nan).astype(np.float32))
+            m = obj_phase.modulation
             mods.append(np.where(np.isfinite(m), m, np.nan).astype(np.float32))
         progress("fringe", 0.02 + 0.5 * (i + 1) / total)
-    comb = combine_azimuths(np.stack(heights), np.stack(weights))
+    comb = consensus_azimuths(np.stack(heights), np.stack(sigmas))
     meas.fringe_height_um = comb.height_um
     meas.fringe_spread_um = comb.spread_um
     meas.azimuths_used = comb.azimuths_used

@@ -17,11 +17,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from worker.recon.unwrap import wrap_phase
 
-__all__ = ["CarrePhase", "FringePhase", "carre_phase", "four_step_phase"]
+__all__ = [
+    "CarrePhase",
+    "FringePhase",
+    "IntensityNoise",
+    "carre_phase",
+    "four_step_phase",
+    "intensity_noise",
+    "phase_sigma_rad",
+]
 
 
 @dataclass(frozen=True)
@@ -32,11 +41,33 @@ class FringePhase:
     modulation : (H, W) float32, B/A (≈ m where the model holds; low in shadows, saturation,
         blur or where interreflections add unmodulated light).  NaN where A ≤ 0.
     amplitude : (H, W) float32, B in the units of the frames.
+    mean : (H, W) float32, A, the mean of the four frames.
+    residual : (H, W) float32, ½·((I_0 + I_180) − (I_90 + I_270)): zero for the model, so it
+        is pure noise (variance σ_I² for four frames of equal noise σ_I) plus whatever the
+        model misses (saturation, harmonics, phase-step errors).  See :func:`intensity_noise`.
     """
 
     phase_rad: np.ndarray
     modulation: np.ndarray
     amplitude: np.ndarray
+    mean: np.ndarray | None = None
+    residual: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class IntensityNoise:
+    """Camera noise of one four-frame set: σ_I² = read_var + gain·A (photon-transfer model).
+
+    read_var : float, variance at zero signal (read noise, quantisation), frame units².
+    gain : float, variance per unit of mean level (shot noise), frame units.
+    """
+
+    read_var: float
+    gain: float
+
+    def variance(self, mean: np.ndarray) -> np.ndarray:
+        m = np.asarray(mean, dtype=np.float32)
+        return np.float32(self.read_var) + np.float32(self.gain) * np.maximum(m, np.float32(0))
 
 
 @dataclass(frozen=True)
@@ -87,14 +118,81 @@ def four_step_phase(frames: np.ndarray) -> FringePhase:
     s += c
     amp = np.sqrt(s, out=s)
     amp *= np.float32(0.5)
-    mean = i0 + i90
-    mean += i180
-    mean += i270
+    even = i0 + i180
+    odd = i90 + i270
+    mean = even + odd
     mean *= np.float32(0.25)
+    even -= odd
+    even *= np.float32(0.5)
     with np.errstate(divide="ignore", invalid="ignore"):
         mod = np.divide(amp, mean)
     mod[~(mean > 0)] = np.nan
-    return FringePhase(phase_rad=phase, modulation=mod, amplitude=amp)
+    return FringePhase(phase_rad=phase, modulation=mod, amplitude=amp, mean=mean, residual=even)
+
+
+def intensity_noise(
+    mean: np.ndarray, residual: np.ndarray, *, samples: int = 20_000
+) -> IntensityNoise:
+    """Fit the photon-transfer model σ_I² = read_var + gain·A to one set's 4-step residuals.
+
+    The residual r = ½((I_0 + I_180) − (I_90 + I_270)) of :func:`four_step_phase` has variance
+    σ_I² wherever the model holds, whatever the phase, so every pixel is a one-degree-of-
+    freedom noise sample at its mean level A (the EMVA 1288 photon-transfer idea, with the
+    fringe set as its own flat field).  Robust to the pixels where the model fails: A is cut
+    into 12 quantile bins, σ² of a bin is median(r²)/0.4549 (the median of χ²₁), and a
+    Theil–Sen line is fitted to the bins, both coefficients kept ≥ 0.  A regular
+    grid of about ``samples`` pixels is used (the fit needs thousands, not millions).
+
+    mean, residual : (H, W) from :func:`four_step_phase`.
+    """
+    mean = np.asarray(mean, dtype=np.float32)
+    stride = max(1, int(np.sqrt(mean.size / max(samples, 1))))
+    a = mean[::stride, ::stride].ravel()
+    r = np.asarray(residual, dtype=np.float32)[::stride, ::stride].ravel()
+    ok = np.isfinite(a) & np.isfinite(r) & (a > 0)
+    a, r2 = a[ok].astype(np.float64), np.square(r[ok].astype(np.float64))
+    if a.size < 24:
+        var = float(np.median(r2) / 0.4549) if a.size else 0.0
+        return IntensityNoise(read_var=var, gain=0.0)
+    order = np.argsort(a)
+    bins = np.array_split(order, 12)
+    xa = np.array([np.median(a[b]) for b in bins])
+    yv = np.array([np.median(r2[b]) / 0.4549 for b in bins])
+    # Theil–Sen line through the bins: a few bins spoilt by saturation or by the model's
+    # failure (the brightest, the darkest) do not tilt it, as they would a least-squares fit.
+    i, j = np.triu_indices(xa.size, k=1)
+    dx = xa[j] - xa[i]
+    keep = dx > 0
+    gain = float(np.median((yv[j] - yv[i])[keep] / dx[keep])) if keep.any() else 0.0
+    read_var = float(np.median(yv - gain * xa))
+    if gain < 0:
+        gain, read_var = 0.0, float(np.median(yv))
+    elif read_var < 0:
+        gain, read_var = float(np.median(yv / xa)), 0.0
+    return IntensityNoise(read_var=float(read_var), gain=float(gain))
+
+
+def phase_sigma_rad(phase: FringePhase, noise: IntensityNoise, *, local_px: int = 5) -> np.ndarray:
+    """Standard deviation of the 4-step phase, σ_ψ = σ_I/(√2·B), float32 (H, W).
+
+    From ψ = atan2(I_270 − I_90, I_0 − I_180) with independent frame noise σ_I
+    (:func:`four_step_phase`).  σ_I² is the larger of the set's photon-transfer model at the
+    pixel's mean level and the local mean of the squared 4-step residual over
+    ``local_px`` × ``local_px`` pixels (0: model only): the local term catches what the model
+    misses (saturation, harmonics, dark pixels below the fit's range), so it only ever makes
+    a phase less trusted.  inf where B = 0 or A is not finite.  A shadowed pixel has B ≈ σ_I
+    (noise only), hence σ_ψ ≈ 0.7 rad or more: such phases never fix an order.
+    """
+    if phase.mean is None or phase.residual is None:
+        raise ValueError("phase has no mean level or residual: use four_step_phase")
+    var = noise.variance(phase.mean)
+    if local_px > 1:
+        r2 = np.square(np.nan_to_num(phase.residual))
+        np.maximum(var, cv2.blur(r2, (local_px, local_px), borderType=cv2.BORDER_REFLECT), out=var)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sig = np.sqrt(var * np.float32(0.5)) / phase.amplitude
+    sig[~np.isfinite(sig)] = np.inf
+    return sig
 
 
 def carre_phase(

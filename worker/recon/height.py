@@ -23,7 +23,13 @@ import scipy.ndimage as ndi
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-__all__ = ["CombinedHeight", "combine_azimuths", "fill_holes", "height_from_phase"]
+__all__ = [
+    "CombinedHeight",
+    "combine_azimuths",
+    "consensus_azimuths",
+    "fill_holes",
+    "height_from_phase",
+]
 
 
 @dataclass(frozen=True)
@@ -131,6 +137,96 @@ def combine_azimuths(
         mean = (wi * np.nan_to_num(hf)).sum(axis=0) / wsum
         var = (wi * (np.nan_to_num(hf) - mean[None, :]) ** 2).sum(axis=0) / wsum
     solved = wsum > 0
+    return CombinedHeight(
+        height_um=np.where(solved, mean, np.nan).astype(np.float32).reshape(rows, cols),
+        spread_um=np.where(solved, np.sqrt(np.maximum(var, 0.0)), np.nan)
+        .astype(np.float32)
+        .reshape(rows, cols),
+        azimuths_used=inl.sum(axis=0).astype(np.int16).reshape(rows, cols),
+    )
+
+
+def _noise_scale(h: np.ndarray, s: np.ndarray, stride: int = 3) -> float:
+    """Scan-wide factor by which the predicted σ understate the azimuths' disagreement.
+
+    For a pair of azimuths with independent errors, z = (h_a − h_b)/√(σ_a² + σ_b²) is N(0, 1)
+    if the σ are right; the median |z| over every pixel and pair is 0.6745·factor, robust to
+    the up to half of pairs that are corrupted.  Model errors that the phase noise does not
+    show (pixel mixing, blur on slopes, the pattern's harmonics) make the factor exceed 1;
+    it is never taken below 1.
+    """
+    hs, ss = h[:, ::stride], s[:, ::stride]
+    zs = []
+    for i in range(h.shape[0]):
+        for j in range(i + 1, h.shape[0]):
+            with np.errstate(invalid="ignore"):
+                z = np.abs(hs[i] - hs[j]) / np.sqrt(ss[i] ** 2 + ss[j] ** 2)
+            zs.append(z[np.isfinite(z)])
+    z = np.concatenate(zs) if zs else np.zeros(0)
+    return max(1.0, float(np.median(z) / 0.6745)) if z.size >= 100 else 1.0
+
+
+def consensus_azimuths(
+    height_um: np.ndarray, sigma_um: np.ndarray, *, k_sigma: float = 4.0
+) -> CombinedHeight:
+    """Combine the heights of A azimuths by the largest mutually consistent group.
+
+    Two azimuths agree at a pixel when |h_a − h_b| ≤ k·√(σ_a² + σ_b²), with the σ of each
+    azimuth's height (from the unwrapping) scaled by the scan-wide factor of
+    :func:`_noise_scale`.  Each azimuth in turn is a candidate centre; the one that the most
+    azimuths agree with wins (ties: the largest total inverse variance), and the result is
+    the inverse-variance weighted mean of the azimuths agreeing with it.  So a minority
+    azimuth off by a fringe order (an unwrapping error) is dropped however precise it
+    claims to be, which the weighted median of :func:`combine_azimuths` does not ensure.
+    Two or more azimuths of which none agrees with another give NaN: no majority can say
+    which is right (:func:`fill_holes` or the fusion takes over).  A single azimuth is taken
+    as it is.
+
+    height_um, sigma_um : (A, H, W); NaN height or non-finite σ: azimuth absent there.
+    Returns :class:`CombinedHeight`; ``spread_um`` is the weighted SD of the inliers.
+    """
+    h = np.asarray(height_um, dtype=np.float32)
+    s = np.asarray(sigma_um, dtype=np.float32)
+    if h.ndim != 3:
+        raise ValueError(f"height_um must have shape (A, H, W), got {h.shape}")
+    if s.shape != h.shape:
+        raise ValueError(f"sigma_um shape {s.shape} differs from height_um {h.shape}")
+    if not k_sigma > 0:
+        raise ValueError(f"k_sigma must be > 0, got {k_sigma}")
+    a, rows, cols = h.shape
+    hf = h.reshape(a, -1)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(hf) & np.isfinite(s.reshape(a, -1)) & (s.reshape(a, -1) > 0)
+    sf = np.where(valid, s.reshape(a, -1), np.float32(np.inf))
+    sf = sf * np.float32(_noise_scale(np.where(valid, hf, np.nan), sf))
+    hv = np.where(valid, hf, np.float32(0))
+    wv = np.where(valid, np.float32(1) / np.square(sf), np.float32(0))
+    k2 = np.float32(k_sigma * k_sigma)
+    best_n = np.zeros(hf.shape[1], dtype=np.int16)
+    best_w = np.zeros(hf.shape[1], dtype=np.float32)
+    best = np.full(hf.shape[1], -1, dtype=np.int16)
+    for c in range(a):
+        with np.errstate(invalid="ignore", over="ignore"):
+            agree = np.square(hv - hv[c]) <= k2 * (np.square(sf) + np.square(sf[c]))
+        agree &= valid & valid[c]
+        n = agree.sum(axis=0, dtype=np.int16)
+        wsum = (wv * agree).sum(axis=0)
+        better = (n > best_n) | ((n == best_n) & (wsum > best_w))
+        best_n = np.where(better, n, best_n)
+        best_w = np.where(better, wsum, best_w)
+        best = np.where(better, np.int16(c), best)
+    centre = np.take_along_axis(hv, np.clip(best, 0, None)[None].astype(np.intp), axis=0)
+    sc = np.take_along_axis(sf, np.clip(best, 0, None)[None].astype(np.intp), axis=0)
+    with np.errstate(invalid="ignore", over="ignore"):
+        inl = valid & (np.square(hv - centre) <= k2 * (np.square(sf) + np.square(sc)))
+    n_valid = valid.sum(axis=0)
+    solved = (best >= 0) & ((best_n >= 2) | (n_valid == 1))
+    inl &= solved[None]
+    wi = np.where(inl, wv, np.float32(0))
+    wsum = wi.sum(axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean = (wi * hv).sum(axis=0) / wsum
+        var = (wi * np.square(hv - mean[None])).sum(axis=0) / wsum
     return CombinedHeight(
         height_um=np.where(solved, mean, np.nan).astype(np.float32).reshape(rows, cols),
         spread_um=np.where(solved, np.sqrt(np.maximum(var, 0.0)), np.nan)

@@ -19,6 +19,7 @@ import numpy as np
 
 __all__ = [
     "UnwrappedPhase",
+    "noise_aware_unwrap",
     "paper_consistent_unwrap",
     "phase_difference",
     "temporal_unwrap",
@@ -42,12 +43,20 @@ class UnwrappedPhase:
     level_used : (H, W) int16, index of the finest level that refined the pixel (−1: none).
     weight : (H, W) float32, relative inverse variance of the height, (m·P_{N−1}/P_ℓ)² with m
         the modulation at the level used (1 when no modulation was given); 0 where NaN.
+        From :func:`noise_aware_unwrap`: the absolute inverse variance 1/σ² (rad⁻²).
+    sigma_rad : (H, W) float32 or None, standard deviation of ``dpsi_rad`` predicted from the
+        phase noise (:func:`noise_aware_unwrap` only); NaN where ``dpsi_rad`` is.
+    conflicts : (H, W) int16 or None, number of levels whose phase was precise enough to fix
+        its order yet disagreed with the prediction beyond the noise (a corrupt level, or a
+        wrong order earlier on); :func:`noise_aware_unwrap` only.
     """
 
     dpsi_rad: np.ndarray
     order_residual: np.ndarray
     level_used: np.ndarray
     weight: np.ndarray
+    sigma_rad: np.ndarray | None = None
+    conflicts: np.ndarray | None = None
 
 
 def wrap_phase(phase_rad: np.ndarray, *, cycle_rad: float = _TWO_PI) -> np.ndarray:
@@ -143,6 +152,113 @@ def temporal_unwrap(
         order_residual=np.where(finite, worst, np.float32(np.nan)),
         level_used=level,
         weight=np.where(finite, weight, 0.0).astype(np.float32),
+    )
+
+
+def noise_aware_unwrap(
+    wrapped_rad: np.ndarray,
+    sigma_rad: np.ndarray,
+    period_um,
+    *,
+    max_ambiguity: float = 1e-3,
+    k_sigma: float = 4.0,
+) -> UnwrappedPhase:
+    """Temporal unwrapping that fixes an order only where the noise makes it unambiguous.
+
+    Every level i measures the finest-period phase Φ through φ_i ≡ q_i·Φ + n_i (mod 2π), with
+    q_i = P_{N−1}/P_i and n_i ~ N(0, σ_i²) (σ_i of the object − reference difference, e.g.
+    √(σ_obj² + σ_ref²) from :func:`worker.recon.fringe.phase_sigma_rad`).  Coarse → fine, the
+    least-squares estimate Φ̂ of all accepted levels (variance 1/Σ q_j²/σ_j²) predicts
+    q_i·Φ̂; the nearest order gives the residual r (|r| ≤ π), whose variance under the right
+    order is s² = q_i²·var(Φ̂) + σ_i².  The level is accepted when
+
+    * the runner-up order (r ∓ 2π) is at most ``max_ambiguity`` as likely, i.e.
+      (2π − |r|)² − r² ≥ 2·s²·ln(1/max_ambiguity), equivalently |r| ≤ π − s²·ln(1/ε)/(2π);
+    * r itself is consistent with the noise, |r| ≤ ``k_sigma``·s.
+
+    A rejected level is skipped, not fatal: a finer level may still be fixed from the coarser
+    estimate (the test accounts for the larger ratio).  This is the sequential form of the
+    multi-frequency maximum-likelihood order choice (Zuo et al. 2016, the noise analysis of
+    hierarchical and multi-frequency unwrapping): each accepted level's order is the maximum-likelihood one given all coarser accepted levels,
+    and the final Φ̂ is their joint least-squares estimate, not the finest level alone.  The
+    coarsest level is unambiguous by the spec (|Δψ_0| < π); it is accepted when it is at least
+    ``sqrt(2 ln(1/ε))``·σ_0 from ±π and precise enough to fix the next level's order.  A pixel
+    whose coarsest level fails is NaN (no absolute order for it at this azimuth).
+
+    A level precise enough to be unambiguous whose residual fails the noise test is a
+    *conflict*: that level is corrupt (interreflection, highlight), or an earlier order was
+    wrong, in which case the following levels conflict as well.  Callers should drop pixels
+    whose conflicts persist (see ``conflicts``).
+
+    Parameters
+    ----------
+    wrapped_rad : (N, H, W) float, object − reference differences, coarsest first.
+    sigma_rad : (N, H, W) float, their standard deviations (inf or NaN: level unusable).
+    period_um : (N,) strictly decreasing.
+    """
+    w, p = _check(wrapped_rad, period_um)
+    sig = np.asarray(sigma_rad, dtype=np.float32)
+    if sig.shape != w.shape:
+        raise ValueError(f"sigma_rad must have shape {w.shape}, got {sig.shape}")
+    if not 0.0 < max_ambiguity < 1.0:
+        raise ValueError(f"max_ambiguity must lie in (0, 1), got {max_ambiguity}")
+    if not k_sigma > 0:
+        raise ValueError(f"k_sigma must be > 0, got {k_sigma}")
+    two_pi = np.float32(_TWO_PI)
+    log_eps = np.float32(np.log(1.0 / max_ambiguity))
+    z = np.float32(np.sqrt(2.0 * log_eps))
+    k2 = np.float32(k_sigma * k_sigma)
+    q = (p[-1] / p).astype(np.float32)
+
+    # Fringe detection: for pure noise B²/σ_I² is Exp(1)-distributed (the two 4-step
+    # quadratures are N(0, 2σ_I²)), so σ_ψ = σ_I/(√2·B) ≤ 1/z has false-alarm rate ε: a
+    # shadowed pixel whose noise happens to look like a fringe does not fix any order.
+    sig = np.where(sig * z <= np.float32(1.0), sig, np.float32(np.inf))
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        u0 = wrap_phase(w[0])
+        s0 = sig[0]
+        ok = (np.float32(np.pi) - np.abs(u0)) >= z * s0
+        if w.shape[0] > 1:
+            # Useful only if it can fix the next level: its scaled error must stay unambiguous.
+            ok &= z * s0 * np.float32(p[0] / p[1]) < np.float32(np.pi)
+        inv0 = np.float32(1.0) / np.square(s0)
+        info = np.where(ok, inv0 * q[0] * q[0], np.float32(0))
+        num = np.where(ok, inv0 * q[0] * u0, np.float32(0))
+        est = np.where(ok, u0 / q[0], np.float32(np.nan))
+        level = np.where(ok, 0, -1).astype(np.int16)
+        worst = np.zeros(u0.shape, dtype=np.float32)
+        conflicts = np.zeros(u0.shape, dtype=np.int16)
+        for i in range(1, w.shape[0]):
+            qi = q[i]
+            pred = est * qi
+            wi = w[i]
+            u = wi + two_pi * np.rint((pred - wi) / two_pi)
+            r = u - pred
+            r2 = np.square(r)
+            si2 = np.square(sig[i])
+            var = qi * qi / info
+            var += si2
+            # float32 rounding of the prediction (|pred| reaches 10⁴ rad on long schedules).
+            var += np.square(pred * np.float32(1e-6))
+            unambiguous = np.abs(r) <= np.float32(np.pi) - var * (log_eps / two_pi)
+            consistent = r2 <= k2 * var
+            acc = unambiguous & consistent
+            conflicts += np.isfinite(si2) & ~acc
+            inv = np.where(acc, np.float32(1.0) / si2, np.float32(0))
+            info += inv * (qi * qi)
+            num += inv * (qi * u)
+            est = np.where(acc, num / info, est)
+            worst = np.where(acc, np.maximum(worst, np.abs(r) / two_pi), worst)
+            level = np.where(acc, np.int16(i), level)
+        sigma = np.float32(1.0) / np.sqrt(info)
+    finite = np.isfinite(est) & (info > 0)
+    return UnwrappedPhase(
+        dpsi_rad=np.where(finite, est, np.float32(np.nan)).astype(np.float32),
+        order_residual=np.where(finite, worst, np.float32(np.nan)),
+        level_used=level,
+        weight=np.where(finite, info, np.float32(0)).astype(np.float32),
+        sigma_rad=np.where(finite, sigma, np.float32(np.nan)).astype(np.float32),
+        conflicts=conflicts,
     )
 
 

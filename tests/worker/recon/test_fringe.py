@@ -1,7 +1,13 @@
 import numpy as np
 import pytest
 
-from worker.recon.fringe import carre_phase, four_step_phase
+from worker.recon.fringe import (
+    IntensityNoise,
+    carre_phase,
+    four_step_phase,
+    intensity_noise,
+    phase_sigma_rad,
+)
 from worker.recon.unwrap import wrap_phase
 
 DELTAS = np.deg2rad([0.0, 90.0, 180.0, 270.0])
@@ -118,3 +124,70 @@ def test_phase_estimators_leave_their_input_alone():
     carre_phase(frames)
     carre_phase(frames, quadrant="paper")
     np.testing.assert_array_equal(frames, before)
+
+
+def test_four_step_mean_and_residual_on_ideal_frames():
+    rng = np.random.default_rng(10)
+    psi = rng.uniform(-np.pi, np.pi, (16, 16))
+    a = rng.uniform(0.1, 0.6, (16, 16))
+    res = four_step_phase(_frames(psi, a, 0.8))
+    np.testing.assert_allclose(res.mean, a, rtol=1e-5)
+    np.testing.assert_allclose(res.residual, 0.0, atol=1e-6)
+
+
+def test_intensity_noise_recovers_the_photon_transfer_line(recon_sense, recon_noise):
+    rng = np.random.default_rng(11)
+    shape = (192, 192)
+    psi = rng.uniform(-np.pi, np.pi, shape)
+    a = rng.uniform(0.02, 0.6, shape)
+    res = four_step_phase(recon_sense(_frames(psi, a, recon_noise["modulation"]), rng))
+    fit = intensity_noise(res.mean, res.residual)
+    # conftest's model: σ² = x/FW + (read/FW)² + q²/12 with x the frame level; the mean of the
+    # four frames' variances is linear in A with slope 1/FW.
+    fw = recon_noise["full_well_e"]
+    full = 2 ** recon_noise["bit_depth"] - 1
+    read_var = (recon_noise["read_noise_e"] / fw) ** 2 + 1.0 / (12 * full**2)
+    # 36,864 pixels in 12 bins of ~3,000: the median of χ²₁ over a bin is known to ~2.5 %
+    # (1.25·sqrt(2/n)·…), the slope over the range of A to a few %; 10 % bound on the slope.
+    assert fit.gain == pytest.approx(1.0 / fw, rel=0.1)
+    # The intercept is tiny next to the shot noise of the darkest bin (A ≈ 0.04 → 2e-6):
+    # only its order of magnitude is testable.
+    assert 0.0 <= fit.read_var < 10 * read_var + 0.1 * 0.04 / fw
+
+
+def test_phase_sigma_predicts_the_phase_error(recon_sense, recon_noise):
+    rng = np.random.default_rng(12)
+    shape = (96, 96)
+    psi = rng.uniform(-np.pi, np.pi, shape)
+    a = rng.uniform(0.05, 0.5, shape)
+    res = four_step_phase(recon_sense(_frames(psi, a, recon_noise["modulation"]), rng))
+    sig = phase_sigma_rad(res, intensity_noise(res.mean, res.residual))
+    err = wrap_phase(res.phase_rad.astype(np.float64) - psi)
+    # σ_ψ = σ_I/(√2 B): err/σ is N(0, 1).  The local 5×5 residual term can only raise σ (by
+    # ~ its own scatter, ±28 % for 25 samples of χ²₁, on the max of two estimates): mean of
+    # (err/σ)² between 0.6 and 1.1 (9,216 pixels: sampling sd 1.5 %).
+    z2 = np.mean((err / sig) ** 2)
+    assert 0.6 < z2 < 1.1
+    # The model alone is unbiased.
+    sig_m = phase_sigma_rad(res, intensity_noise(res.mean, res.residual), local_px=0)
+    assert 0.9 < np.mean((err / sig_m) ** 2) < 1.1
+
+
+def test_phase_sigma_is_large_where_there_is_no_fringe(recon_sense):
+    # A cast shadow: the pixel sees only the read noise (A ≈ 0, B ≈ 0).  Whatever B the noise
+    # fakes, B²/σ_I² is Exp(1)-distributed, so σ_ψ = σ_I/(√2 B) < 0.27 rad (B²/σ_I² > 6.9)
+    # happens with probability e^−6.9 = 1e-3; over 1,024 dark pixels at most a few percent.
+    rng = np.random.default_rng(13)
+    shape = (64, 64)
+    psi = rng.uniform(-np.pi, np.pi, shape)
+    a = np.where(np.arange(64)[None, :] < 16, 0.0, 0.4) * np.ones(shape)
+    res = four_step_phase(recon_sense(_frames(psi, a, 0.85), rng))
+    sig = phase_sigma_rad(res, intensity_noise(res.mean, res.residual))
+    dark = sig[:, 2:14]  # away from the 5×5 window's reach into the lit part
+    assert np.mean(dark < 0.27) < 0.01
+    assert np.median(sig[:, 20:]) < 0.02
+
+
+def test_intensity_noise_variance_is_the_line():
+    n = IntensityNoise(read_var=1e-6, gain=2e-5)
+    np.testing.assert_allclose(n.variance(np.array([0.0, 0.5, -1.0])), [1e-6, 1.1e-5, 1e-6])

@@ -1,7 +1,12 @@
 import numpy as np
 import pytest
 
-from worker.recon.height import combine_azimuths, fill_holes, height_from_phase
+from worker.recon.height import (
+    combine_azimuths,
+    consensus_azimuths,
+    fill_holes,
+    height_from_phase,
+)
 
 
 def test_height_from_phase_follows_the_spec_sign():
@@ -133,3 +138,49 @@ def test_fringe_chain_follows_the_spec_geometry(azimuth_deg):
     )
     est = height_from_phase(dpsi, period_um=period, polar_deg=theta)
     np.testing.assert_allclose(est, h, atol=0.05)
+
+
+def test_consensus_drops_a_precise_minority_azimuth_off_by_a_fringe_order():
+    rng = np.random.default_rng(7)
+    a, shape = 4, (60, 60)
+    truth = rng.uniform(-500, 500, shape)
+    sigma = np.array([3.0, 3.0, 6.0, 6.0])[:, None, None] * np.ones((a,) + shape)
+    heights = truth[None] + rng.normal(0.0, 1.0, (a,) + shape) * sigma
+    # Azimuth 0 claims the best precision but has a wrong order (+214 µm, one finest period
+    # at 45°) on the left third; a weighted median would follow it where it outweighs others.
+    sigma[0, :, :20] = 0.5
+    heights[0, :, :20] = truth[:, :20] + 214.0 + rng.normal(0.0, 0.5, (60, 20))
+    # Rows 0–9: only azimuths 2 and 3, which disagree by an order: no majority → NaN.
+    heights[:2, :10] = np.nan
+    heights[3, :10] += 214.0
+    # Rows 10–19: a single azimuth sees the pixel; taken as it is.
+    heights[1:, 10:20] = np.nan
+    res = consensus_azimuths(heights, sigma)
+    assert np.all(np.isnan(res.height_um[:10]))
+    np.testing.assert_allclose(res.height_um[10:20], heights[0, 10:20], rtol=1e-6)
+    assert np.all(res.azimuths_used[10:20] == 1)
+    body = res.height_um[20:] - truth[20:]
+    n = res.azimuths_used[20:]
+    # Inliers: the weighted mean has σ = (Σ 1/σ_a²)^−½ ≤ 3/√2 µm; 6σ over 2,400 pixels.
+    assert np.all(np.abs(body) <= 6 * 3.0 / np.sqrt(2))
+    # The wrong azimuth never counts; honest azimuths fall outside 4σ·√2-ish only rarely.
+    assert np.all(n[:, :20] <= 3)
+    assert np.mean(n[:, :20] == 3) > 0.98 and np.mean(n[:, 20:] == 4) > 0.98
+
+
+def test_consensus_scales_understated_sigmas_from_the_azimuth_pairs():
+    rng = np.random.default_rng(8)
+    shape = (80, 80)
+    truth = rng.uniform(-100, 100, shape)
+    # The σ handed in are 3× too small (a model error the phase noise does not show): without
+    # the scan-wide factor most honest azimuths would disagree at 4σ.
+    heights = truth[None] + rng.normal(0.0, 6.0, (3,) + shape)
+    res = consensus_azimuths(heights, np.full((3,) + shape, 2.0))
+    assert np.mean(res.azimuths_used == 3) > 0.95
+
+
+def test_consensus_rejects_bad_input():
+    with pytest.raises(ValueError, match="sigma_um"):
+        consensus_azimuths(np.zeros((2, 3, 3)), np.zeros((2, 3, 4)))
+    with pytest.raises(ValueError, match="height_um"):
+        consensus_azimuths(np.zeros((3, 3)), np.zeros((3, 3)))

@@ -3,9 +3,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from worker.recon.fringe import carre_phase, four_step_phase
+from worker.recon.fringe import carre_phase, four_step_phase, intensity_noise, phase_sigma_rad
 from worker.recon.height import height_from_phase
 from worker.recon.unwrap import (
+    noise_aware_unwrap,
     paper_consistent_unwrap,
     phase_difference,
     temporal_unwrap,
@@ -153,3 +154,117 @@ def test_temporal_unwrap_is_exact_without_noise(h_frac, n_levels, ratio):
     res = temporal_unwrap(wrap_phase(levels), periods)
     expected = dpsi0 * periods[0] / periods[-1]
     np.testing.assert_allclose(res.dpsi_rad[0, 0], expected, rtol=1e-5, atol=1e-3)
+
+
+@given(
+    h_frac=st.floats(-0.49, 0.49),
+    n_levels=st.integers(1, 9),
+    ratio=st.sampled_from([2.0, 3.0, 4.0]),
+)
+def test_noise_aware_unwrap_is_exact_without_noise(h_frac, n_levels, ratio):
+    periods = 1000.0 / ratio ** np.arange(n_levels)
+    dpsi0 = 2 * np.pi * h_frac
+    levels = np.array([dpsi0 * periods[0] / p for p in periods])[:, None, None]
+    # Tiny σ: every order is unambiguous, so every level is used.  The coarsest must stay
+    # z·σ from ±π, and with ratio 4 fix the next level: σ·z·4 < π.
+    sig = np.full(levels.shape, 1e-4)
+    res = noise_aware_unwrap(wrap_phase(levels), sig, periods)
+    expected = dpsi0 * periods[0] / periods[-1]
+    if np.pi - abs(dpsi0) < 3.8e-4:
+        return  # within z·σ of ±π: legitimately refused
+    np.testing.assert_allclose(res.dpsi_rad[0, 0], expected, rtol=1e-5, atol=1e-3)
+    assert res.level_used[0, 0] == n_levels - 1
+    assert res.conflicts[0, 0] == 0
+
+
+def test_noise_aware_unwrap_skips_an_unusable_level_and_flags_a_corrupt_one():
+    periods = np.array([800.0, 400.0, 200.0, 100.0, 50.0])
+    dpsi_fine = np.linspace(-40, 40, 60)[None, :] * np.ones((6, 1))  # in units of P = 50
+    levels = np.stack([dpsi_fine * 50 / p for p in periods])
+    sig = np.full(levels.shape, 0.01)
+    # Row 0: the 200 µm level is in shadow there (σ = inf, its phase garbage).  Row 1: the
+    # 100 µm level is off by π/2 (an interreflection) although it looks precise.  Row 2:
+    # the finest level is not resolved (σ 0.5: above the detection bound, never used).
+    levels[2, 0] = 3.0
+    sig[2, 0] = np.inf
+    levels[3, 1] += np.pi / 2
+    sig[4, 2] = 0.5
+    levels[4, 2] = np.random.default_rng(0).uniform(-np.pi, np.pi, levels.shape[2])
+    res = noise_aware_unwrap(wrap_phase(levels), sig, periods)
+    # σ of the estimate: 0.01 rad at the finest level, combined with the coarser ones.
+    np.testing.assert_allclose(res.dpsi_rad[[0, 1, 3, 4, 5]], dpsi_fine[[0, 1, 3, 4, 5]], atol=0.1)
+    # Row 2 stops at the 100 µm level: its σ is twice the finest-level one, scaled.
+    np.testing.assert_allclose(res.dpsi_rad[2], dpsi_fine[2], atol=0.2)
+    np.testing.assert_array_equal(res.level_used[2], 3)
+    np.testing.assert_array_equal(res.level_used[[0, 1, 3]], 4)
+    np.testing.assert_array_equal(res.conflicts[1], 1)
+    np.testing.assert_array_equal(res.conflicts[[0, 2, 3]], 0)
+    # Inverse variances add: Σ (q_i/σ_i)² over the used levels, q_i = P_fine/P_i.
+    q = 50.0 / periods
+    np.testing.assert_allclose(res.sigma_rad[3], 0.01 / np.sqrt(np.sum(q**2)), rtol=1e-4)
+    np.testing.assert_allclose(res.sigma_rad[2], 0.01 / np.sqrt(np.sum(q[:4] ** 2)), rtol=1e-4)
+
+
+def _scene_levels(rng, sense, shape, periods, tan_t, h, a_obj, attenuation):
+    """Object/reference 4-step sets per period through the noise model; σ from the data."""
+    diffs, sigs = [], []
+    u_dot_p = rng.uniform(0, 1e4, shape)
+    for i, p in enumerate(periods):
+        psi_ref = 2 * np.pi * u_dot_p / p + 0.7
+        m = MODULATION * attenuation[i]
+        dpsi = -2 * np.pi * h * tan_t / p
+        o = four_step_phase(_fringe_set(psi_ref + dpsi, a_obj, m, rng, sense))
+        r = four_step_phase(_fringe_set(psi_ref, 0.45, m, rng, sense))
+        s_o = phase_sigma_rad(o, intensity_noise(o.mean, o.residual))
+        s_r = phase_sigma_rad(r, intensity_noise(r.mean, r.residual))
+        diffs.append(phase_difference(o.phase_rad, r.phase_rad))
+        sigs.append(np.sqrt(s_o**2 + s_r**2))
+    return np.stack(diffs), np.stack(sigs)
+
+
+MODULATION = 0.85
+
+
+def test_noise_aware_unwrap_has_no_gross_errors_at_low_modulation(recon_sense):
+    rng = np.random.default_rng(21)
+    shape = (96, 96)
+    theta = 45.0
+    tan_t = np.tan(np.deg2rad(theta))
+    yy, xx = np.mgrid[0:96, 0:96]
+    h = 900.0 * np.sin(xx / 9.0) * np.cos(yy / 13.0) + 8.0 * (xx - 48)
+    periods = 8192.0 / 2.0 ** np.arange(8)  # down to 64 µm: ~90 fine fringes over the relief
+    assert periods[0] > 2 * tan_t * np.abs(h).max()
+    # Columns 0–23 lit (ρ·n·l = 0.3); 24–47 dim clay (0.004: σ_ψ ≈ 0.15 rad), rows 48–95 of
+    # it darker still (0.0006: σ_ψ ≈ 0.7 rad, where the chain's 2π orders fail); 48–71 cast
+    # shadow (nothing but read noise); 72–95 lit with the two finest periods blurred away
+    # (modulation × 0.02, as on a steep wall).
+    dim_a = np.where(yy < 48, 0.004, 0.0006)
+    a_obj = np.select([xx < 24, xx < 48, xx < 72], [0.3, dim_a, 0.0], 0.3).astype(float)
+    att = np.ones((8,) + shape)
+    att[6:, :, 72:] = 0.02
+    diffs, sigs = _scene_levels(rng, recon_sense, shape, periods, tan_t, h, a_obj, att)
+    res = noise_aware_unwrap(diffs, sigs, periods)
+    chain = temporal_unwrap(diffs, periods)
+    truth = -2 * np.pi * h * tan_t / periods[-1]
+    err = res.dpsi_rad - truth
+    lit = xx < 24
+    dim = (xx >= 26) & (xx < 46) & (yy < 46)
+    dark = (xx >= 26) & (xx < 46) & (yy >= 50)
+    shadow = (xx >= 50) & (xx < 70)  # away from the 5×5 noise window's reach
+    blurred = xx >= 74
+    # Wrong orders would be errors ≥ 2π·P_fine/P_level ≥ 2π; the noise is σ_rad.  6σ over
+    # 9,216 pixels is exceeded by chance with probability ~2e-5.  The local 5×5 noise term
+    # only makes σ larger, so this bound is conservative in its favour — hence the second
+    # check that σ is not absurdly large where the fringes are good.
+    fin = np.isfinite(err)
+    assert np.all(np.abs(err[fin]) <= 6.0 * res.sigma_rad[fin])
+    assert np.mean(fin[lit]) == 1.0 and np.median(res.sigma_rad[lit]) < 0.05
+    # Dim clay: all kept.  Darker clay: the chain gets many orders wrong; the pixels kept
+    # here are right (checked above) — those the noise forbids are left out.
+    assert np.mean(fin[dim]) > 0.99
+    assert np.mean(np.abs(chain.dpsi_rad - truth)[dark] > np.pi) > 0.05
+    # Shadow: a fringe is "detected" in noise with probability 1e-3 per level; the coarsest
+    # must pass and fix the next, and a false start then meets inconsistent levels.
+    assert np.mean(fin[shadow]) < 0.01
+    # Blurred finest periods: the pixel stops at the third-finest level (index 5).
+    assert np.mean(res.level_used[blurred] == 5) > 0.99
