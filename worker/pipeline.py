@@ -20,14 +20,27 @@ from worker.bundle import BundleError, open_bundle
 from worker.measure import Measurements, ReconstructionError, measure_bundle
 from worker.model_dir import ModelArrays, write_model_dir
 from worker.recon.color import linear_to_srgb8
-from worker.recon.fusion import fuse_default
+from worker.recon.fringe import four_step_phase
+from worker.recon.fusion import fuse_default, sharpen_heights
 from worker.recon.fusion_paper import fuse_paper
 from worker.recon.height import fill_holes
 from worker.recon.integrate import integrate_normals
 from worker.recon.mask import tablet_mask
-from worker.recon.quality import crease_sigma_um, fringe_sigma_um, normal_sigma_rad
+from worker.recon.quality import (
+    camera_blur_sigma_px,
+    crease_sigma_um,
+    fringe_sigma_um,
+    normal_sigma_rad,
+)
 
-__all__ = ["FUSIONS", "SURFACES", "ReconstructionError", "reconstruct_bundle", "surface_of"]
+__all__ = [
+    "FUSIONS",
+    "SURFACES",
+    "ReconstructionError",
+    "camera_blur_px",
+    "reconstruct_bundle",
+    "surface_of",
+]
 
 FUSIONS = ("default", "paper")
 SURFACES = ("fused", "fringe", "normals")
@@ -62,6 +75,9 @@ def reconstruct_bundle(
     try:
         with open_bundle(bundle_path) as bundle:
             meas = measure_bundle(bundle, progress=report_progress)
+            t0 = time.perf_counter()
+            blur_px = camera_blur_px(bundle)
+            meas.timings["camera_blur"] = time.perf_counter() - t0
     except BundleError as exc:
         raise ReconstructionError(str(exc)) from None
     except FileNotFoundError as exc:
@@ -80,12 +96,15 @@ def reconstruct_bundle(
 
     t0 = time.perf_counter()
     report_progress("fusion", 0.84)
-    height, normals, used_surface = surface_of(meas, mask, fusion=fusion, surface=surface)
+    height, normals, used_surface = surface_of(
+        meas, mask, fusion=fusion, surface=surface, blur_sigma_px=blur_px
+    )
     timings["fusion"] = time.perf_counter() - t0
     mask &= np.isfinite(height)
 
     quality = _quality_maps(meas, height, mask)
     report = _report(meas, mask, quality, fusion=fusion, surface=used_surface)
+    report["quality"]["camera_blur_sigma_px"] = blur_px
     rgb = (
         meas.rgb_linear if meas.rgb_linear is not None else np.repeat(meas.albedo[..., None], 3, 2)
     )
@@ -126,13 +145,61 @@ def _mask(meas: Measurements) -> np.ndarray:
     )
 
 
+def camera_blur_px(bundle, *, max_sets: int = 5) -> float:
+    """σ (px) of the camera's PSF measured on the reference target's fringes (0 if none).
+
+    Decodes one azimuth's reference fringe sets: its finest periods, where the camera's
+    modulation transfer shows, and one about 8× coarser that fixes the pattern's own
+    modulation (`quality.camera_blur_sigma_px`); the median modulation of the central half
+    of the frame (away from the image border) stands for each period.
+    """
+    sets: dict = {}
+    for f in bundle.frames:
+        if f.kind == "fringe" and f.target == "reference" and f.period_um:
+            key = (round(f.azimuth_deg % 360, 6), round(f.polar_deg, 6))
+            sets.setdefault(key, {}).setdefault(round(f.period_um, 6), []).append(f)
+    candidates = [
+        (key, {p: fr for p, fr in by_p.items() if len(fr) == 4})
+        for key, by_p in sorted(sets.items())
+    ]
+    candidates = [(k, by_p) for k, by_p in candidates if len(by_p) >= 2]
+    if not candidates:
+        return 0.0
+    (azimuth, _), by_period = candidates[0]
+    periods = sorted(by_period)
+    chosen = periods[: max_sets - 1]
+    coarse = [p for p in periods if p >= 6 * periods[0]]
+    if coarse:
+        chosen.append(min(coarse, key=lambda p: abs(np.log(p / (8 * periods[0])))))
+    frames = [
+        f for p in chosen for f in sorted(by_period[p], key=lambda f: (f.phase_deg or 0.0) % 360)
+    ]
+    stack = bundle.radiance_many(frames)
+    rows, cols = stack.shape[1:]
+    crop = stack[:, rows // 4 : rows - rows // 4, cols // 4 : cols - cols // 4]
+    mods = []
+    for i in range(len(chosen)):
+        m = four_step_phase(crop[4 * i : 4 * i + 4]).modulation
+        m = m[np.isfinite(m)]
+        mods.append(float(np.median(m)) if m.size else np.nan)
+    s = float(bundle.manifest.camera.pixel_size_um)
+    return camera_blur_sigma_px(np.array(chosen) / s, np.array(mods), azimuth_deg=azimuth)
+
+
 def surface_of(
-    meas: Measurements, mask: np.ndarray, *, fusion: str = "default", surface: str = "fused"
+    meas: Measurements,
+    mask: np.ndarray,
+    *,
+    fusion: str = "default",
+    surface: str = "fused",
+    blur_sigma_px: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, str]:
     """Heights (H, W) µm and normals (H, W, 3) of the chosen surface on the mask, and its name.
 
     Uses what the bundle has: normals and fringe heights → fusion; normals only →
     integration; fringe heights only → the heights, with normals from their gradient.
+    blur_sigma_px: σ of the camera's PSF (`camera_blur_px`); the default fusion's heights
+    are sharpened by it (`fusion.sharpen_heights`), the baselines are left as measured.
     """
     s = meas.pixel_size_um
     has_n = meas.normals is not None
@@ -169,6 +236,8 @@ def surface_of(
         normal_sigma_rad=sig_n,
         height_sigma_um=sig_f,
     )
+    if blur_sigma_px > 0:
+        h = sharpen_heights(h, mask, blur_sigma_px=blur_sigma_px)
     return h, _unit_normals(meas.normals, h, mask, s), "default"
 
 

@@ -108,3 +108,42 @@ def crease_sigma_um(normals: np.ndarray, *, pixel_size_um: float) -> np.ndarray:
     s = float(pixel_size_um)
     laplacian = (np.gradient(gx, axis=1) + np.gradient(gy, axis=0)) / s
     return (s * s * np.abs(laplacian) / 8.0).astype(np.float32)
+
+
+def camera_blur_sigma_px(
+    periods_px: np.ndarray,
+    modulation: np.ndarray,
+    *,
+    azimuth_deg: float,
+) -> float:
+    """Standard deviation (pixels) of the camera's point-spread function, from the contrast
+    that the reference target's fringes keep at each period (0 when nothing is measurable).
+
+    On the flat reference a fringe set is a pure sinusoid of period P; SCAN_BUNDLE.md gives it
+    one modulation m for every period, so what the finer periods lose is the camera's
+    modulation transfer: the pixel's area (a box of one pixel, projected on the fringe
+    direction u = (sin φ, cos φ): sinc(|sin φ|/P)·sinc(|cos φ|/P), sinc(x) = sin πx/πx) times
+    the optics' PSF, for a Gaussian of σ px exp(−2π²σ²/P²) (the slanted-sinusoid form of the
+    MTF measurement of ISO 12233). Hence ln(m_P / box_P) = ln m − 2π²σ²·P⁻², a line in P⁻²
+    fitted over the periods given; σ² = −slope/2π², clipped at 0.
+
+    periods_px: (K,) fringe periods in pixels (P_um / pixel_size_um), K ≥ 2 distinct.
+    modulation: (K,) typical measured modulation B/A of each period on the reference target
+    (e.g. the median over the frame). Periods under 3 px or with modulation ≤ 0.02 are left
+    out (too few samples per period / nothing to measure).
+    """
+    p = np.asarray(periods_px, np.float64).ravel()
+    m = np.asarray(modulation, np.float64).ravel()
+    if p.shape != m.shape:
+        raise ValueError(f"periods_px {p.shape} and modulation {m.shape} must match")
+    phi = np.radians(azimuth_deg)
+    box = np.sinc(abs(np.sin(phi)) / np.maximum(p, 1e-9)) * np.sinc(
+        abs(np.cos(phi)) / np.maximum(p, 1e-9)
+    )
+    ok = np.isfinite(p) & np.isfinite(m) & (p >= 3) & (m > 0.02)
+    x = 1.0 / np.square(p[ok])
+    if x.size < 2 or np.ptp(x) < 1e-4:
+        return 0.0
+    y = np.log(m[ok] / box[ok])
+    slope = np.polyfit(x, y, 1)[0]
+    return float(np.sqrt(max(0.0, -slope / (2 * np.pi**2))))

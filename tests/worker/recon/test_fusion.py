@@ -203,3 +203,91 @@ def test_crease_error_is_zero_on_planes_and_large_at_a_v_groove():
         _normals(np.full((5, 6), 0.3), np.full((5, 6), -0.2)), pixel_size_um=S_UM
     )
     np.testing.assert_allclose(plane, 0, atol=1e-5)
+
+
+def _reference_fringes(period_px, sigma_px, *, rows=64, cols=320, supersample=8):
+    """Four phase steps of a vertical sinusoid on a flat target as a camera sees it: the
+    pattern averaged over each pixel (supersampled box), then blurred by a Gaussian PSF of
+    σ px, applied exactly in Fourier space (one frequency: a factor exp(−2π²σ²/P²))."""
+    x = (np.arange(cols * supersample) + 0.5) / supersample
+    frames = []
+    for step in range(4):
+        fringe = 1 + 0.8 * np.cos(2 * np.pi * x / period_px + step * np.pi / 2)
+        boxed = fringe.reshape(cols, supersample).mean(axis=1)
+        mean = boxed.mean()
+        blurred = mean + (boxed - mean) * np.exp(-2 * np.pi**2 * sigma_px**2 / period_px**2)
+        frames.append(np.tile(blurred, (rows, 1)))
+    return np.stack(frames).astype(np.float32)
+
+
+@pytest.mark.parametrize("sigma_px", [0.0, 0.5, 0.8])
+def test_camera_blur_is_measured_from_the_fringe_contrast(sigma_px):
+    # Noise-free, so the only errors are the model's: the box's sinc is divided out exactly
+    # and the pixel grid aliases nothing at periods ≥ 8 px; the median of B/A over the frame
+    # is the pattern's. 0.02 px is the floating-point and sampling slack.
+    from worker.recon.fringe import four_step_phase
+    from worker.recon.quality import camera_blur_sigma_px
+
+    periods = np.array([8.0, 10.0, 16.0, 20.0, 64.0])
+    mods = [
+        float(np.median(four_step_phase(_reference_fringes(p, sigma_px)).modulation))
+        for p in periods
+    ]
+    got = camera_blur_sigma_px(periods, np.array(mods), azimuth_deg=90.0)
+    assert got == pytest.approx(sigma_px, abs=0.02)
+    # One period alone cannot separate the pattern's contrast from the blur.
+    assert camera_blur_sigma_px(periods[:1], np.array(mods[:1]), azimuth_deg=90.0) == 0.0
+
+
+def _groove(rows=40, cols=80):
+    """Pixel-averaged heights of a V-groove 300 µm wide and 60 µm deep along the columns."""
+    ss = 16
+    x = (np.arange(cols * ss) + 0.5) / ss * S_UM
+    h = -np.clip(60 - np.abs(x - cols * S_UM / 2) * 60 / 150, 0, None)
+    return np.tile(h.reshape(cols, ss).mean(axis=1), (rows, 1))
+
+
+def test_sharpening_restores_a_blurred_groove_and_leaves_noise_alone():
+    # A Gaussian blur of 0.6 px takes ~1.4 µm off the groove's depth at 20 µm pixels; the
+    # second-order correction must bring back at least 2/3 of it (the O(σ⁴) rest). On a flat
+    # noisy plane (no bend above 3σ of the Laplacian) the garrote keeps the heights within
+    # 10 % of their noise.
+    from scipy import ndimage
+
+    from worker.recon.fusion import sharpen_heights
+
+    h = _groove()
+    blurred = ndimage.gaussian_filter1d(h, 0.6, axis=1, mode="nearest")
+    mask = np.ones(h.shape, bool)
+    c = h.shape[1] // 2
+    lost = blurred[:, c].mean() - h[:, c].mean()
+    assert lost > 1
+    got = sharpen_heights(blurred, mask, blur_sigma_px=0.6)
+    assert abs(got[5:-5, c].mean() - h[5:-5, c].mean()) < lost / 3
+    np.testing.assert_allclose(
+        sharpen_heights(blurred, mask, blur_sigma_px=0.0), blurred, atol=1e-4
+    )
+    rng = np.random.default_rng(3)
+    flat = rng.normal(0, 1.0, (60, 60)).astype(np.float32)
+    kept = sharpen_heights(flat, np.ones(flat.shape, bool), blur_sigma_px=0.6)
+    assert _rms(kept - flat) < 0.1
+
+
+def test_cell_average_targets_are_exact_for_a_cubic():
+    # H(x) = pixel mean of h = a·x³: its slope at pixel centres is what a normal gives; the
+    # four-point rule is exact for cubic H, the trapezoid rule errs by s³·H'''/12.
+    from worker.recon.fusion import cell_average_targets_um
+    from worker.recon.integrate import edge_targets_um
+
+    a = 1e-6
+    x = np.arange(30, dtype=np.float64) * S_UM
+    big_h = a * x**3 + a * S_UM**2 * x / 4  # pixel mean of a·x³
+    slope = 3 * a * x**2 + a * S_UM**2 / 4
+    gx = np.tile(slope, (5, 1)).astype(np.float32)
+    gy = np.zeros_like(gx)
+    tx, ty = cell_average_targets_um(gx, gy, pixel_size_um=S_UM)
+    want = np.diff(big_h)
+    np.testing.assert_allclose(tx[:, 1:-1], np.tile(want[1:-1], (5, 1)), rtol=1e-4)
+    trap, _ = edge_targets_um(gx, gy, pixel_size_um=S_UM)
+    assert np.all(np.abs(trap[:, 1:-1] - want[1:-1]) > 0.5 * a * S_UM**3 / 2)
+    np.testing.assert_allclose(ty, 0, atol=1e-6)
