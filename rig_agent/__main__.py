@@ -188,6 +188,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rig-agent", description=__doc__.splitlines()[0])
     parser.add_argument("--config", help="TOML settings file (default: $RIG_AGENT_CONFIG)")
     parser.add_argument("--sim", action="store_true", help="use the simulated rig")
+    parser.add_argument(
+        "--projector-screen",
+        type=int,
+        metavar="N",
+        help="display index of the projector (overrides the projector_screen setting)",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("calibrate", help="capture the white reference target")
     scan = sub.add_parser("scan", help="capture one face of a tablet")
@@ -224,6 +230,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         settings = load_settings(args.config)
         if args.sim:
             settings = dataclasses.replace(settings, devices="sim")
+        if args.projector_screen is not None:
+            settings = dataclasses.replace(settings, projector_screen=args.projector_screen)
         spool = Spool(settings.spool_path)
         return COMMANDS[args.command](args, settings, spool)
     except CliError as exc:

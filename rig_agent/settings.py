@@ -44,6 +44,11 @@ class Settings:
     projector_pixel_size_um: float = 30.0
     projector_bit_depth: int = 8
     projector_gamma: float = 2.2
+    # "window": a borderless fullscreen window on display projector_screen (0 = the first);
+    # "none": no output (a light engine driven by other software). The sim rig has none.
+    projector_display: str = "window"
+    projector_screen: int = 1
+    projector_settle_ms: float = 100.0  # after the frame is handed over, before the camera
     reference_reflectance: float = 0.99
     # acquisition plan: "standard", "quick", or the path of a .json/.toml plan file
     plan: str = "standard"
@@ -66,6 +71,9 @@ class Settings:
             "pixel_size_um": self.pixel_size_um > 0,
             "polar_deg": 0 < self.polar_deg < 90,
             "projector_bit_depth": 1 <= self.projector_bit_depth <= 16,
+            "projector_display": self.projector_display in ("window", "none"),
+            "projector_screen": self.projector_screen >= 0,
+            "projector_settle_ms": self.projector_settle_ms >= 0,
             "reference_reflectance": 0 < self.reference_reflectance <= 1,
             "upload_retries": self.upload_retries >= 0,
             "upload_backoff_s": self.upload_backoff_s >= 0,

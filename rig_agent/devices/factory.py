@@ -53,9 +53,9 @@ def open_devices(settings: Settings, *, target: str, face: str | None = None) ->
         return _open_simulated(settings, target=target, face=face or "obverse")
     from rig_agent.devices.camera import OpenCVCamera
 
-    projector = HeadlessProjector(projector_geometry(settings))
     stage = _stage(settings, settings.stage_url)
     stage.connect()
+    camera = None
     try:
         device = (
             int(settings.camera_device)
@@ -68,10 +68,27 @@ def open_devices(settings: Settings, *, target: str, face: str | None = None) ->
             height=settings.camera_height,
             base_exposure=settings.camera_base_exposure,
         )
+        projector = open_projector(settings)
     except BaseException:
+        if camera is not None:
+            camera.close()
         stage.close()
         raise
     return Devices(stage=stage, camera=camera, projector=projector)
+
+
+def open_projector(settings: Settings) -> Projector:
+    """The real rig's projector output, as ``projector_display`` says."""
+    geometry = projector_geometry(settings)
+    if settings.projector_display == "none":
+        return HeadlessProjector(geometry)
+    from rig_agent.devices.display import WindowProjector
+
+    return WindowProjector(
+        geometry,
+        screen=settings.projector_screen,
+        settle_s=settings.projector_settle_ms / 1000.0,
+    )
 
 
 def _open_simulated(settings: Settings, *, target: str, face: str) -> Devices:

@@ -139,3 +139,10 @@ def test_a_bad_plan_file_is_named(config, tmp_path, capsys):
     assert main(["--config", str(config), "calibrate"]) == 2
     err = capsys.readouterr().err
     assert "plan.json" in err and "fringe_phases_deg" in err and "Traceback" not in err
+
+
+def test_projector_screen_option_overrides_the_setting(config, capsys):
+    assert main(["--config", str(config), "--projector-screen", "3", "status"]) == 0
+    assert main(["--config", str(config), "--projector-screen", "-1", "status"]) == 2
+    err = capsys.readouterr().err
+    assert "projector_screen" in err and "Traceback" not in err

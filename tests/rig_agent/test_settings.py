@@ -21,6 +21,17 @@ def test_file_then_environment(tmp_path):
     assert settings.polar_deg == 35.5
 
 
+def test_projector_output_settings(tmp_path):
+    config = tmp_path / "rig.toml"
+    config.write_text('projector_display = "none"\nprojector_settle_ms = 250\n')
+    settings = load_settings(config, environ={"RIG_AGENT_PROJECTOR_SCREEN": "2"})
+    assert settings.projector_display == "none"
+    assert settings.projector_screen == 2
+    assert settings.projector_settle_ms == 250.0
+    # A real rig shows its patterns in a window on the second display by default.
+    assert (Settings().projector_display, Settings().projector_screen) == ("window", 1)
+
+
 def test_config_path_from_the_environment(tmp_path):
     config = tmp_path / "rig.toml"
     config.write_text('api_token = "secret"\n')
@@ -36,6 +47,9 @@ def test_config_path_from_the_environment(tmp_path):
         ("", {"RIG_AGENT_CAMERA_WIDTH": "wide"}, "RIG_AGENT_CAMERA_WIDTH"),
         ("", {"RIG_AGENT_NOPE": "1"}, "RIG_AGENT_NOPE"),
         ("devices = 'virtual'\n", {}, "devices"),
+        ("projector_display = 'hdmi'\n", {}, "projector_display"),
+        ("", {"RIG_AGENT_PROJECTOR_SCREEN": "-1"}, "projector_screen"),
+        ("projector_settle_ms = -5\n", {}, "projector_settle_ms"),
         ("polar_deg = \n", {}, "not valid TOML"),
     ],
 )
