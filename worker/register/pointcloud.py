@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["ScanCloud", "scan_cloud"]
+__all__ = ["ScanCloud", "ScanGrid", "scan_cloud"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -25,7 +25,8 @@ class ScanCloud:
 
     points_mm: (N, 3) float64; normals: (N, 3) unit, outward; colours: (N, 3) float64 in
     [0, 1] (sRGB as stored in albedo.png); pixel_size_um: lateral sampling; label: the scan's
-    name in reports (face or id); face: scan.face; pose: (3, 3) rotation tablet → scan or None.
+    name in reports (face or id); face: scan.face; pose: (3, 3) rotation tablet → scan or None;
+    grid: the height map the points came from (None for a bare point cloud).
     """
 
     points_mm: np.ndarray
@@ -35,6 +36,18 @@ class ScanCloud:
     label: str
     face: str = "other"
     pose: np.ndarray | None = None
+    grid: ScanGrid | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class ScanGrid:
+    """The scan's height map as a surface that can be sampled anywhere (projective
+    correspondences, :mod:`worker.register.joint`): height_um (H, W), normals (H, W, 3) and
+    ``valid`` (H, W) bool, the pixels kept as points (finite, eroded mask, not too steep)."""
+
+    height_um: np.ndarray
+    normals: np.ndarray
+    valid: np.ndarray
 
 
 def scan_cloud(
@@ -94,6 +107,7 @@ def scan_cloud(
             raise ValueError(f"albedo must have shape {h.shape}[+3], got {a.shape}")
         a = a[rows, cols]
         colours = (np.repeat(a[:, None], 3, 1) if a.ndim == 1 else a[:, :3]) / 255.0
+    grid = ScanGrid(np.where(keep, h, np.nan), np.where(keep[..., None], n, np.nan), keep)
     return ScanCloud(
-        points, nn, colours.astype(np.float64), float(pixel_size_um), label, face, pose
+        points, nn, colours.astype(np.float64), float(pixel_size_um), label, face, pose, grid
     )
