@@ -204,62 +204,92 @@ def noise_aware_unwrap(
         raise ValueError(f"max_ambiguity must lie in (0, 1), got {max_ambiguity}")
     if not k_sigma > 0:
         raise ValueError(f"k_sigma must be > 0, got {k_sigma}")
-    two_pi = np.float32(_TWO_PI)
     log_eps = np.float32(np.log(1.0 / max_ambiguity))
     z = np.float32(np.sqrt(2.0 * log_eps))
     k2 = np.float32(k_sigma * k_sigma)
     q = (p[-1] / p).astype(np.float32)
 
-    # Fringe detection: for pure noise B²/σ_I² is Exp(1)-distributed (the two 4-step
-    # quadratures are N(0, 2σ_I²)), so σ_ψ = σ_I/(√2·B) ≤ 1/z has false-alarm rate ε: a
-    # shadowed pixel whose noise happens to look like a fringe does not fix any order.
-    sig = np.where(sig * z <= np.float32(1.0), sig, np.float32(np.inf))
+    n_lev = w.shape[0]
+    rows = w.shape[1]
+    shape = w.shape[1:]
+    out_est = np.empty(shape, dtype=np.float32)
+    out_info = np.empty(shape, dtype=np.float32)
+    out_worst = np.empty(shape, dtype=np.float32)
+    out_level = np.empty(shape, dtype=np.int16)
+    out_conf = np.empty(shape, dtype=np.int16)
+    # Blocks of rows small enough for the CPU cache: the level loop makes ~30 passes over
+    # each, which on whole megapixel images would be bound by memory bandwidth.
+    step = max(1, 32768 // max(1, int(np.prod(shape[1:], dtype=np.int64))))
+    consts = (q, np.float32(p[0] / p[1]) if n_lev > 1 else None, z, log_eps, k2)
+    for r0 in range(0, rows, step):
+        sl = slice(r0, min(rows, r0 + step))
+        est, info, worst, level, conf = _unwrap_block(w[:, sl], sig[:, sl], *consts)
+        out_est[sl], out_info[sl], out_worst[sl] = est, info, worst
+        out_level[sl], out_conf[sl] = level, conf
+    finite = np.isfinite(out_est) & (out_info > 0)
+    with np.errstate(divide="ignore"):
+        sigma = np.float32(1.0) / np.sqrt(out_info)
+    return UnwrappedPhase(
+        dpsi_rad=np.where(finite, out_est, np.float32(np.nan)),
+        order_residual=np.where(finite, out_worst, np.float32(np.nan)),
+        level_used=out_level,
+        weight=np.where(finite, out_info, np.float32(0)),
+        sigma_rad=np.where(finite, sigma, np.float32(np.nan)),
+        conflicts=out_conf,
+    )
+
+
+def _unwrap_block(w, sig, q, ratio01, z, log_eps, k2):
+    """:func:`noise_aware_unwrap` on a block of rows; returns est, info, worst, level, conflicts."""
+    two_pi = np.float32(_TWO_PI)
+    pi = np.float32(np.pi)
+    amb = log_eps / two_pi
+    one = np.float32(1.0)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        # Fringe detection: for pure noise B²/σ_I² is Exp(1)-distributed (the two 4-step
+        # quadratures are N(0, 2σ_I²)), so σ_ψ = σ_I/(√2·B) ≤ 1/z has false-alarm rate ε:
+        # a shadowed pixel whose noise happens to look like a fringe fixes no order.
+        inv_var = one / np.square(sig)
+        detected = inv_var >= z * z
+        inv_var[~detected] = 0
         u0 = wrap_phase(w[0])
-        s0 = sig[0]
-        ok = (np.float32(np.pi) - np.abs(u0)) >= z * s0
-        if w.shape[0] > 1:
+        ok = (pi - np.abs(u0)) * np.sqrt(inv_var[0]) >= z
+        if ratio01 is not None:
             # Useful only if it can fix the next level: its scaled error must stay unambiguous.
-            ok &= z * s0 * np.float32(p[0] / p[1]) < np.float32(np.pi)
-        inv0 = np.float32(1.0) / np.square(s0)
-        info = np.where(ok, inv0 * q[0] * q[0], np.float32(0))
-        num = np.where(ok, inv0 * q[0] * u0, np.float32(0))
+            ok &= inv_var[0] * np.square(pi / (z * ratio01)) > one
+        info = np.where(ok, inv_var[0] * (q[0] * q[0]), np.float32(0))
+        num = np.where(ok, inv_var[0] * (q[0] * u0), np.float32(0))
         est = np.where(ok, u0 / q[0], np.float32(np.nan))
         level = np.where(ok, 0, -1).astype(np.int16)
         worst = np.zeros(u0.shape, dtype=np.float32)
         conflicts = np.zeros(u0.shape, dtype=np.int16)
         for i in range(1, w.shape[0]):
             qi = q[i]
+            # float32 rounding of the prediction: |Φ| < π·P_0/P_{N−1} by the spec.
+            eps2 = np.float32((1e-6 * np.pi * qi / q[0]) ** 2)
             pred = est * qi
-            wi = w[i]
-            u = wi + two_pi * np.rint((pred - wi) / two_pi)
-            r = u - pred
-            r2 = np.square(r)
-            si2 = np.square(sig[i])
-            var = qi * qi / info
-            var += si2
-            # float32 rounding of the prediction (|pred| reaches 10⁴ rad on long schedules).
-            var += np.square(pred * np.float32(1e-6))
-            unambiguous = np.abs(r) <= np.float32(np.pi) - var * (log_eps / two_pi)
-            consistent = r2 <= k2 * var
-            acc = unambiguous & consistent
-            conflicts += np.isfinite(si2) & ~acc
-            inv = np.where(acc, np.float32(1.0) / si2, np.float32(0))
+            u = pred - w[i]
+            u /= two_pi
+            np.rint(u, out=u)
+            u *= two_pi
+            u += w[i]
+            r = np.abs(u - pred)
+            var = (qi * qi) / info
+            var += one / inv_var[i]
+            var += eps2
+            acc = r <= pi - var * amb
+            acc &= np.square(r) <= k2 * var
+            conflicts += detected[i] & ~acc
+            inv = np.where(acc, inv_var[i], np.float32(0))
             info += inv * (qi * qi)
-            num += inv * (qi * u)
-            est = np.where(acc, num / info, est)
-            worst = np.where(acc, np.maximum(worst, np.abs(r) / two_pi), worst)
-            level = np.where(acc, np.int16(i), level)
-        sigma = np.float32(1.0) / np.sqrt(info)
-    finite = np.isfinite(est) & (info > 0)
-    return UnwrappedPhase(
-        dpsi_rad=np.where(finite, est, np.float32(np.nan)).astype(np.float32),
-        order_residual=np.where(finite, worst, np.float32(np.nan)),
-        level_used=level,
-        weight=np.where(finite, info, np.float32(0)).astype(np.float32),
-        sigma_rad=np.where(finite, sigma, np.float32(np.nan)).astype(np.float32),
-        conflicts=conflicts,
-    )
+            inv *= qi
+            inv *= u
+            num += inv
+            np.copyto(est, num / info, where=acc)
+            r /= two_pi
+            np.maximum(worst, r, out=worst, where=acc)
+            level[acc] = i
+    return est, info, worst, level, conflicts
 
 
 def paper_consistent_unwrap(half_range_rad: np.ndarray, period_um) -> UnwrappedPhase:
