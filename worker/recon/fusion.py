@@ -16,9 +16,16 @@ likelihood surface under Gaussian noise:
 - height term: λ = 1/σ_f², σ_f the fringe height noise; pixels without a fringe height
   (shadowed for every azimuth) have λ = 0 and are reached by the slopes alone.
 
-Fringe heights that disagree with the slopes by more than `outlier_sigmas`·σ_f after a first
-solve (phase-unwrapping errors, specular spikes) are down-weighted (Cauchy IRLS) and the
-problem solved once more, warm-started.
+Robustness (real data has unwrapping errors, specular spikes and cliffs the normals cannot
+express): before solving, edges whose slope step contradicts the fringes' own step far
+beyond both noises are down-weighted (`_cut_discontinuities`); after a first solve both
+terms are re-weighted by Cauchy weights 1/(1 + (r/(k·σ))²), k = `outlier_sigmas` — fringe
+heights off the surface, and edges whose solved step disagrees with their target (except
+the edges of a spike pixel, which its neighbours must hold) — and the problem is solved
+again, warm-started.
+
+Edge targets use the four-point cell average of the slopes where it stands out of the noise
+(`cell_average_targets_um`). `sharpen_heights` undoes a measured camera blur afterwards.
 """
 
 from __future__ import annotations
@@ -45,6 +52,7 @@ def fuse_default(
     normal_sigma_rad: np.ndarray | float,
     height_sigma_um: np.ndarray | float,
     outlier_sigmas: float = 4.0,
+    robust_passes: int = 1,
     rtol: float = 2e-5,
 ) -> np.ndarray:
     """Fuse normals and fringe heights into one height map.
@@ -103,17 +111,30 @@ def fuse_default(
     with np.errstate(divide="ignore"):
         lam = np.where(has_f, 1.0 / np.square(sig_f[crop]), 0).astype(np.float32)
 
+    if has_f.any() and outlier_sigmas > 0:
+        wx, wy = _cut_discontinuities(f_c, sig_f[crop], has_f, wx, wy, tx, ty, k=outlier_sigmas)
     lam = _anchor_parts_without_data(m_c, lam, wx, wy)
     x0 = np.where(has_f, f_c, np.float32(np.nanmedian(f_c[has_f]) if has_f.any() else 0))
     sol = solve_screened_poisson(tx, ty, wx, wy, data_um=f_c, data_weight=lam, x0_um=x0, rtol=rtol)
     h = sol.height_um
     if has_f.any() and outlier_sigmas > 0:
-        with np.errstate(invalid="ignore"):
-            z = (h - f_c) / (outlier_sigmas * sig_f[crop])
-        robust = np.where(has_f, 1.0 / (1.0 + np.square(np.nan_to_num(z))), 1).astype(np.float32)
-        if np.any(robust < 0.5):
+        k = np.float32(outlier_sigmas)
+        for _ in range(robust_passes):
+            with np.errstate(invalid="ignore", divide="ignore"):
+                zf = (h - f_c) / (k * sig_f[crop])
+                zx = (h[:, 1:] - h[:, :-1] - tx) * np.sqrt(wx) / k
+                zy = (h[1:, :] - h[:-1, :] - ty) * np.sqrt(wy) / k
+            robust = np.where(has_f, 1 / (1 + np.square(np.nan_to_num(zf))), 1)
+            rx, ry = _edge_robust_weights(np.nan_to_num(zx), np.nan_to_num(zy))
             sol = solve_screened_poisson(
-                tx, ty, wx, wy, data_um=f_c, data_weight=lam * robust, x0_um=h, rtol=rtol
+                tx,
+                ty,
+                (wx * rx).astype(np.float32),
+                (wy * ry).astype(np.float32),
+                data_um=f_c,
+                data_weight=(lam * robust).astype(np.float32),
+                x0_um=h,
+                rtol=rtol,
             )
             h = sol.height_um
     h = _zero_mean_where_no_data(h, m_c, has_f)
@@ -154,7 +175,7 @@ def cell_average_targets_um(
 
 def _garrote(c, significance):
     """c shrunk by max(0, 1 − (k·σ/c)²), σ the robust spread of c; 0 where c is NaN."""
-    finite = c[np.isfinite(c)]
+    finite = c[np.isfinite(c)][::3]  # a third of the values fixes the MAD to < 1 %
     if finite.size < 25:
         return np.zeros_like(c)
     noise = 1.4826 * float(np.median(np.abs(finite - np.median(finite))))
@@ -163,6 +184,60 @@ def _garrote(c, significance):
     c2 = np.square(c)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(c2 > floor, c * (1 - floor / c2), np.float32(0)).astype(np.float32)
+
+
+def _edge_robust_weights(zx, zy):
+    """Cauchy weights 1/(1 + z²) of the edges, z the scaled misfit, except around spikes.
+
+    An edge is down-weighted when the solved step disagrees with its slope target: a
+    discontinuity the slopes cannot express (one or two edges of each pixel along a cliff).
+    A pixel whose three or four edges all disagree is a spike (an unwrapping error pulling
+    its own height), not a discontinuity: its edges keep full weight so that its
+    neighbours, not its fringe height, set it (its fringe weight falls instead).
+    """
+    bad_x = np.abs(zx) > 1
+    bad_y = np.abs(zy) > 1
+    count = np.zeros((zy.shape[0] + 1, zx.shape[1] + 1), np.int8)
+    count[:, 1:] += bad_x
+    count[:, :-1] += bad_x
+    count[1:, :] += bad_y
+    count[:-1, :] += bad_y
+    spike = count >= 3
+    rx = np.where(spike[:, 1:] | spike[:, :-1], 1, 1 / (1 + np.square(zx)))
+    ry = np.where(spike[1:, :] | spike[:-1, :], 1, 1 / (1 + np.square(zy)))
+    return rx.astype(np.float32), ry.astype(np.float32)
+
+
+def _cut_discontinuities(f, sig_f, has_f, wx, wy, tx, ty, *, k):
+    """Down-weight edges whose slope step contradicts the fringes' own step.
+
+    A normal cannot express a height discontinuity (a cliff at a chip, the wall of a deep
+    stroke seen edge-on): the pixel that straddles it mixes both sides and predicts a gentle
+    step, and a stiff slope term then drags the lower side up (or the upper down) over many
+    pixels. The fringe heights see the jump. An edge between two fringe heights that agree
+    with their 3×3 median (so that an isolated unwrapping error does not cut its four edges)
+    is compared with the fringes' step: r = (f_q − f_p) − t, σ_r² = σ_f,p² + σ_f,q² + 1/w
+    (the crease model error is in σ_f); beyond k·σ_r its weight falls as (k·σ_r/r)².
+    """
+    from scipy import ndimage
+
+    filled = np.where(has_f, f, np.float32(0))
+    med = ndimage.median_filter(filled, size=3, mode="nearest")
+    with np.errstate(invalid="ignore"):
+        trusted = has_f & (np.abs(f - med) <= k * sig_f)
+    var_f = np.where(trusted, np.square(sig_f), np.inf).astype(np.float32)
+
+    def cut(w, t, fa, fb, va, vb):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            var = va + vb + np.where(w > 0, 1.0 / w, np.inf)
+            r2 = np.square((fb - fa) - t)
+            keep = np.minimum(1.0, k * k * var / r2)
+        keep = np.where(np.isfinite(keep), keep, 1).astype(np.float32)
+        return w * keep
+
+    wx = cut(wx, tx, filled[:, :-1], filled[:, 1:], var_f[:, :-1], var_f[:, 1:])
+    wy = cut(wy, ty, filled[:-1, :], filled[1:, :], var_f[:-1, :], var_f[1:, :])
+    return wx, wy
 
 
 def _zero_mean_where_no_data(h, mask, has_data):
@@ -254,7 +329,7 @@ def sharpen_heights(
     lap = np.zeros_like(f)
     lap[1:-1, 1:-1] = f[:-2, 1:-1] + f[2:, 1:-1] + f[1:-1, :-2] + f[1:-1, 2:] - 4 * f[1:-1, 1:-1]
     lap = np.where(inner, lap, np.float32(0))
-    sample = lap[inner]
+    sample = lap[inner][::3]  # a third of the values fixes the MAD to < 1 %
     if sample.size < 25:
         return h.copy()
     noise = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))

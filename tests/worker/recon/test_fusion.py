@@ -291,3 +291,30 @@ def test_cell_average_targets_are_exact_for_a_cubic():
     trap, _ = edge_targets_um(gx, gy, pixel_size_um=S_UM)
     assert np.all(np.abs(trap[:, 1:-1] - want[1:-1]) > 0.5 * a * S_UM**3 / 2)
     np.testing.assert_allclose(ty, 0, atol=1e-6)
+
+
+def test_a_cliff_that_the_normals_cannot_express_is_kept_from_the_fringes():
+    # A 300 µm step along a column line (a chip's wall seen from above): the straddling pixels
+    # carry a mixed-pixel normal that predicts a gentle 20 µm step, as stiff as any other
+    # (σ_n per normal). Without the discontinuity test the stiff slopes would pull both sides
+    # together over tens of pixels; with it, the step comes from the fringes, and pixels ≥ 3 px
+    # from the wall keep the fringe-limited accuracy (σ_f/√(pixels averaged) ≪ 1 µm; 1 µm).
+    rng = np.random.default_rng(21)
+    h, gx, gy = _surface()
+    wall = 64
+    h = h + np.where(np.arange(h.shape[1]) >= wall, 300.0, 0.0)[None, :]
+    gx = gx.copy()
+    gx[:, wall - 1 : wall + 1] += 20.0 / S_UM / 2  # mixed pixels: a mild slope
+    n, f = _noisy(rng, h, gx, gy)
+    mask = _mask(h.shape)
+    got = fuse_default(
+        n,
+        f,
+        pixel_size_um=S_UM,
+        mask=mask,
+        normal_sigma_rad=SIGMA_N_RAD,
+        height_sigma_um=SIGMA_F_UM,
+    )
+    away = mask & (np.abs(np.arange(h.shape[1]) - wall + 0.5) > 3)[None, :]
+    err = (got - h)[away]
+    assert np.max(np.abs(err - np.median(err))) < 1.0
