@@ -270,15 +270,19 @@ def register_scans(
     # Correspondences farther apart than about a pixel pair points beside, not on, the overlap
     # and pull the scans into each other's gaps: the last distance is 0.7 pixel.
     fine_mm = 0.7 * pixel_mm
-    loo = (diameter / 25.0, 4.0 * pixel_mm, 2.0 * pixel_mm, fine_mm)
+    grids = all(s.grid is not None for s in scans)
+    if grids:  # coarse only, on thinned clouds: the projective refinement does the fine part
+        loo, loo_voxel = (diameter / 25.0, 4.0 * voxel, 2.0 * voxel), voxel
+    else:
+        loo, loo_voxel = (diameter / 25.0, 4.0 * pixel_mm, 2.0 * pixel_mm, fine_mm), pixel_mm
     for _ in range(loo_rounds):
-        transforms = _leave_one_out(scans, transforms, loo, pixel_mm, restarted)
+        transforms = _leave_one_out(scans, transforms, loo, loo_voxel, restarted)
     clouds = [cloud_of(s) for s in scans]
     anchor = next((i for i, how in enumerate(init) if how in ("anchor", "pose")), 0)
     if "pose" not in init:  # no pose at all: the obverse (else the first) scan is the anchor
         anchor = next((i for i, s in enumerate(scans) if s.face == "obverse"), 0)
     surface_rms: dict = {}
-    if all(s.grid is not None for s in scans):
+    if grids:
         # Height maps: all poses at once on projective correspondences (worker.register.joint)
         transforms, surface_rms = joint_refine(
             scans,
