@@ -158,6 +158,9 @@ def test_whole_tablet_permalink_restores_hidden_faces(page, tablet_library, tool
     page.wait_for_function("() => location.hash.includes('hide=reverse')", timeout=10000)
     link = page.url
     assert f"m={lib.models['whole']}" in link
+    # The permalink button (K) gives the same state, model version included.
+    button_link = page.evaluate("() => window.hammurabi.ui.permalink()")
+    assert "hide=reverse" in button_link and f"m={lib.models['whole']}" in button_link
 
     page.reload()
     _wait_loaded(page, lib, tools)
