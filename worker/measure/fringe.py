@@ -11,7 +11,7 @@ from scipy import ndimage
 from worker.measure.frames import angle_key, prefetch
 from worker.recon.fringe import four_step_phase, intensity_noise, phase_sigma_rad
 from worker.recon.height import consensus_azimuths, height_from_phase
-from worker.recon.unwrap import noise_aware_unwrap, phase_difference
+from worker.recon.unwrap import noise_aware_unwrap
 
 __all__ = ["measure_fringes"]
 
@@ -57,21 +57,26 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress):
             groups.append([*frames, *refs])
             index.append((key, level))
     heights, sigmas, mods, ambient = [], [], [], []
-    wrapped: dict = defaultdict(list)
-    noise: dict = defaultdict(list)
+    wrapped: dict = {}
+    noise: dict = {}
     total = len(groups)
     for i, stack in enumerate(prefetch(bundle, groups)):
         key, level = index[i]
         obj_phase = four_step_phase(stack[:4])
         ref_phase = four_step_phase(stack[4:])
-        wrapped[key].append(phase_difference(obj_phase.phase_rad, ref_phase.phase_rad))
+        if level == 0:
+            shape = (len(sets[key]), *obj_phase.phase_rad.shape)
+            wrapped[key] = np.empty(shape, np.float32)
+            noise[key] = np.empty(shape, np.float32)
+        # Object − reference, left in (−2π, 2π): noise_aware_unwrap wraps where it matters.
+        np.subtract(obj_phase.phase_rad, ref_phase.phase_rad, out=wrapped[key][level])
         sig = phase_sigma_rad(obj_phase, intensity_noise(obj_phase.mean, obj_phase.residual))
         sig_ref = phase_sigma_rad(ref_phase, intensity_noise(ref_phase.mean, ref_phase.residual))
         # Object and reference noise are independent: variances add in the difference.
         sig *= sig
         sig_ref *= sig_ref
         sig += sig_ref
-        noise[key].append(np.sqrt(sig, out=sig))
+        np.sqrt(sig, out=noise[key][level])
         levels = sets[key]
         if level == len(levels) - 1:
             with np.errstate(invalid="ignore", divide="ignore"):
@@ -82,7 +87,7 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress):
                     ).astype(np.float32)
                 )
             periods = np.array([p for p, _, _ in levels])
-            un = noise_aware_unwrap(np.stack(wrapped.pop(key)), np.stack(noise.pop(key)), periods)
+            un = noise_aware_unwrap(wrapped.pop(key), noise.pop(key), periods)
             h = height_from_phase(un.dpsi_rad, period_um=float(periods[-1]), polar_deg=key[1])
             sigma_h = np.abs(
                 height_from_phase(un.sigma_rad, period_um=float(periods[-1]), polar_deg=key[1])

@@ -180,18 +180,23 @@ def phase_sigma_rad(phase: FringePhase, noise: IntensityNoise, *, local_px: int 
     pixel's mean level and the local mean of the squared 4-step residual over
     ``local_px`` × ``local_px`` pixels (0: model only): the local term catches what the model
     misses (saturation, harmonics, dark pixels below the fit's range), so it only ever makes
-    a phase less trusted.  inf where B = 0 or A is not finite.  A shadowed pixel has B ≈ σ_I
-    (noise only), hence σ_ψ ≈ 0.7 rad or more: such phases never fix an order.
+    a phase less trusted.  inf where B = 0, NaN where the frames are.  A shadowed pixel has
+    B ≈ σ_I (noise only), hence σ_ψ ≈ 0.7 rad or more: such phases never fix an order.
     """
     if phase.mean is None or phase.residual is None:
         raise ValueError("phase has no mean level or residual: use four_step_phase")
-    var = noise.variance(phase.mean)
+    var = np.maximum(np.asarray(phase.mean, dtype=np.float32), np.float32(0))
+    var *= np.float32(noise.gain)
+    var += np.float32(noise.read_var)
     if local_px > 1:
-        r2 = np.square(np.nan_to_num(phase.residual))
-        np.maximum(var, cv2.blur(r2, (local_px, local_px), borderType=cv2.BORDER_REFLECT), out=var)
+        r2 = np.square(phase.residual)
+        local = cv2.blur(r2, (local_px, local_px), dst=r2, borderType=cv2.BORDER_REFLECT)
+        # fmax: a NaN neighbourhood (undecodable pixels) falls back on the model.
+        np.fmax(var, local, out=var)
+    var *= np.float32(0.5)
+    sig = np.sqrt(var, out=var)
     with np.errstate(divide="ignore", invalid="ignore"):
-        sig = np.sqrt(var * np.float32(0.5)) / phase.amplitude
-    sig[~np.isfinite(sig)] = np.inf
+        sig /= phase.amplitude
     return sig
 
 
