@@ -237,7 +237,7 @@ def surface_of(
         height_sigma_um=sig_f,
     )
     if blur_sigma_px > 0:
-        h = sharpen_heights(h, mask, blur_sigma_px=blur_sigma_px)
+        h = sharpen_heights(h, mask, blur_sigma_px=blur_sigma_px, pixel_size_um=s)
     return h, _unit_normals(meas.normals, h, mask, s), "default"
 
 

@@ -20,9 +20,9 @@ Robustness (real data has unwrapping errors, specular spikes and cliffs the norm
 express): before solving, edges whose slope step contradicts the fringes' own step far
 beyond both noises are down-weighted (`_cut_discontinuities`); after a first solve both
 terms are re-weighted by Cauchy weights 1/(1 + (r/(k·σ))²), k = `outlier_sigmas` — fringe
-heights off the surface, and edges whose solved step disagrees with their target (except
-the edges of a spike pixel, which its neighbours must hold) — and the problem is solved
-again, warm-started.
+heights off the surface, and edges whose solved step disagrees with their target (only
+where the normals show a break, `_bent_edges`: on smooth ground an island of bad fringe
+heights must not cut itself loose) — and the problem is solved again, warm-started.
 
 Edge targets use the four-point cell average of the slopes where it stands out of the noise
 (`cell_average_targets_um`). `sharpen_heights` undoes a measured camera blur afterwards.
@@ -112,7 +112,10 @@ def fuse_default(
         lam = np.where(has_f, 1.0 / np.square(sig_f[crop]), 0).astype(np.float32)
 
     if has_f.any() and outlier_sigmas > 0:
-        wx, wy = _cut_discontinuities(f_c, sig_f[crop], has_f, wx, wy, tx, ty, k=outlier_sigmas)
+        cut_x, cut_y = _bent_edges(gx, gy, step_sigma, s, k=outlier_sigmas)
+        wx, wy = _cut_discontinuities(
+            f_c, sig_f[crop], has_f, wx, wy, tx, ty, cut_x, cut_y, k=outlier_sigmas
+        )
     lam = _anchor_parts_without_data(m_c, lam, wx, wy)
     x0 = np.where(has_f, f_c, np.float32(np.nanmedian(f_c[has_f]) if has_f.any() else 0))
     sol = solve_screened_poisson(tx, ty, wx, wy, data_um=f_c, data_weight=lam, x0_um=x0, rtol=rtol)
@@ -125,7 +128,8 @@ def fuse_default(
                 zx = (h[:, 1:] - h[:, :-1] - tx) * np.sqrt(wx) / k
                 zy = (h[1:, :] - h[:-1, :] - ty) * np.sqrt(wy) / k
             robust = np.where(has_f, 1 / (1 + np.square(np.nan_to_num(zf))), 1)
-            rx, ry = _edge_robust_weights(np.nan_to_num(zx), np.nan_to_num(zy))
+            rx = np.where(cut_x, 1 / (1 + np.square(np.nan_to_num(zx))), 1)
+            ry = np.where(cut_y, 1 / (1 + np.square(np.nan_to_num(zy))), 1)
             sol = solve_screened_poisson(
                 tx,
                 ty,
@@ -186,29 +190,31 @@ def _garrote(c, significance):
         return np.where(c2 > floor, c * (1 - floor / c2), np.float32(0)).astype(np.float32)
 
 
-def _edge_robust_weights(zx, zy):
-    """Cauchy weights 1/(1 + z²) of the edges, z the scaled misfit, except around spikes.
+def _bent_edges(gx, gy, step_sigma, s, *, k):
+    """Edges where the normals themselves show a break: the only ones that may be cut.
 
-    An edge is down-weighted when the solved step disagrees with its slope target: a
-    discontinuity the slopes cannot express (one or two edges of each pixel along a cliff).
-    A pixel whose three or four edges all disagree is a spike (an unwrapping error pulling
-    its own height), not a discontinuity: its edges keep full weight so that its
-    neighbours, not its fringe height, set it (its fringe weight falls instead).
+    A real discontinuity leaves a trace in the normals — the straddling pixels mix both
+    sides (or see a wall), so their slope differs from their neighbours' by far more than
+    the noise: s·|g[c+1] − g[c−1]|/2 > k·(step noise) at either end, or no normal at all.
+    On smooth ground the slopes are continuous, so an island of unwrapping errors cannot
+    cut itself loose there: its fringe heights are re-weighted instead.
     """
-    bad_x = np.abs(zx) > 1
-    bad_y = np.abs(zy) > 1
-    count = np.zeros((zy.shape[0] + 1, zx.shape[1] + 1), np.int8)
-    count[:, 1:] += bad_x
-    count[:, :-1] += bad_x
-    count[1:, :] += bad_y
-    count[:-1, :] += bad_y
-    spike = count >= 3
-    rx = np.where(spike[:, 1:] | spike[:, :-1], 1, 1 / (1 + np.square(zx)))
-    ry = np.where(spike[1:, :] | spike[:-1, :], 1, 1 / (1 + np.square(zy)))
-    return rx.astype(np.float32), ry.astype(np.float32)
+
+    def bend(g, axis):
+        d = np.zeros_like(g)
+        if axis == 1:
+            d[:, 1:-1] = np.abs(g[:, 2:] - g[:, :-2])
+        else:
+            d[1:-1, :] = np.abs(g[2:, :] - g[:-2, :])
+        return d
+
+    with np.errstate(invalid="ignore"):
+        z = np.maximum(bend(gx, 1), bend(gy, 0)) * np.float32(s / 2) / step_sigma
+    broken = ~(z <= k)  # NaN (no normal, no noise estimate) counts as broken
+    return broken[:, 1:] | broken[:, :-1], broken[1:, :] | broken[:-1, :]
 
 
-def _cut_discontinuities(f, sig_f, has_f, wx, wy, tx, ty, *, k):
+def _cut_discontinuities(f, sig_f, has_f, wx, wy, tx, ty, cut_x, cut_y, *, k):
     """Down-weight edges whose slope step contradicts the fringes' own step.
 
     A normal cannot express a height discontinuity (a cliff at a chip, the wall of a deep
@@ -217,7 +223,8 @@ def _cut_discontinuities(f, sig_f, has_f, wx, wy, tx, ty, *, k):
     pixels. The fringe heights see the jump. An edge between two fringe heights that agree
     with their 3×3 median (so that an isolated unwrapping error does not cut its four edges)
     is compared with the fringes' step: r = (f_q − f_p) − t, σ_r² = σ_f,p² + σ_f,q² + 1/w
-    (the crease model error is in σ_f); beyond k·σ_r its weight falls as (k·σ_r/r)².
+    (the crease model error is in σ_f); beyond k·σ_r its weight falls as (k·σ_r/r)². Only
+    edges where the normals show a break (`_bent_edges`) are tested.
     """
     from scipy import ndimage
 
@@ -227,16 +234,16 @@ def _cut_discontinuities(f, sig_f, has_f, wx, wy, tx, ty, *, k):
         trusted = has_f & (np.abs(f - med) <= k * sig_f)
     var_f = np.where(trusted, np.square(sig_f), np.inf).astype(np.float32)
 
-    def cut(w, t, fa, fb, va, vb):
+    def cut(w, t, fa, fb, va, vb, allowed):
         with np.errstate(invalid="ignore", divide="ignore"):
             var = va + vb + np.where(w > 0, 1.0 / w, np.inf)
             r2 = np.square((fb - fa) - t)
             keep = np.minimum(1.0, k * k * var / r2)
-        keep = np.where(np.isfinite(keep), keep, 1).astype(np.float32)
+        keep = np.where(np.isfinite(keep) & allowed, keep, 1).astype(np.float32)
         return w * keep
 
-    wx = cut(wx, tx, filled[:, :-1], filled[:, 1:], var_f[:, :-1], var_f[:, 1:])
-    wy = cut(wy, ty, filled[:-1, :], filled[1:, :], var_f[:-1, :], var_f[1:, :])
+    wx = cut(wx, tx, filled[:, :-1], filled[:, 1:], var_f[:, :-1], var_f[:, 1:], cut_x)
+    wy = cut(wy, ty, filled[:-1, :], filled[1:, :], var_f[:-1, :], var_f[1:, :], cut_y)
     return wx, wy
 
 
@@ -294,6 +301,8 @@ def sharpen_heights(
     mask: np.ndarray,
     *,
     blur_sigma_px: float,
+    pixel_size_um: float,
+    max_slope: float = float(np.tan(np.radians(60.0))),
     significance: float = 3.0,
 ) -> np.ndarray:
     """Undo a Gaussian camera blur of σ px to second order: h ≈ h_b − (σ²/2)·∇²h_b.
@@ -307,7 +316,10 @@ def sharpen_heights(
     flat ground ∇²h_b is mostly noise, which the correction would amplify: it is shrunk by
     the non-negative garrote gain max(0, 1 − (k·σ_L/L)²) (Breiman 1995), σ_L the noise of L
     (1.4826·MAD over the mask), k = `significance`, so only bends well above the noise are
-    sharpened and flat ground keeps its noise.
+    sharpened and flat ground keeps its noise. The expansion holds for a continuous surface,
+    whose slope turns by at most 2·`max_slope` across a pixel, i.e. |∇²h| ≤ 2·max_slope·s
+    (µm per px²); beyond that (a cliff, a fringe outlier) the correction is clipped there
+    instead of growing with the jump.
 
     height_um: (H, W) µm, NaN off the mask; mask: (H, W) bool; blur_sigma_px ≥ 0.
     Returns (H, W) float32, NaN where height_um is.
@@ -316,6 +328,8 @@ def sharpen_heights(
     m = np.asarray(mask, bool)
     if m.shape != h.shape:
         raise ValueError(f"mask shape {m.shape} does not match height_um {h.shape}")
+    if not pixel_size_um > 0:
+        raise ValueError(f"pixel_size_um must be > 0, got {pixel_size_um}")
     if not blur_sigma_px >= 0:
         raise ValueError(f"blur_sigma_px must be >= 0, got {blur_sigma_px}")
     valid = m & np.isfinite(h)
@@ -337,5 +351,6 @@ def sharpen_heights(
     lap2 = np.square(lap)
     with np.errstate(invalid="ignore", divide="ignore"):
         gain = np.where(lap2 > floor, 1 - floor / lap2, np.float32(0))
-    out = h - np.float32(0.5 * blur_sigma_px**2) * gain * lap
+    limit = np.float32(2 * max_slope * pixel_size_um)
+    out = h - np.float32(0.5 * blur_sigma_px**2) * np.clip(gain * lap, -limit, limit)
     return np.where(valid, out, h).astype(np.float32)

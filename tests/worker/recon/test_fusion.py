@@ -262,14 +262,14 @@ def test_sharpening_restores_a_blurred_groove_and_leaves_noise_alone():
     c = h.shape[1] // 2
     lost = blurred[:, c].mean() - h[:, c].mean()
     assert lost > 1
-    got = sharpen_heights(blurred, mask, blur_sigma_px=0.6)
+    got = sharpen_heights(blurred, mask, blur_sigma_px=0.6, pixel_size_um=S_UM)
     assert abs(got[5:-5, c].mean() - h[5:-5, c].mean()) < lost / 3
     np.testing.assert_allclose(
-        sharpen_heights(blurred, mask, blur_sigma_px=0.0), blurred, atol=1e-4
+        sharpen_heights(blurred, mask, blur_sigma_px=0.0, pixel_size_um=S_UM), blurred, atol=1e-4
     )
     rng = np.random.default_rng(3)
     flat = rng.normal(0, 1.0, (60, 60)).astype(np.float32)
-    kept = sharpen_heights(flat, np.ones(flat.shape, bool), blur_sigma_px=0.6)
+    kept = sharpen_heights(flat, np.ones(flat.shape, bool), blur_sigma_px=0.6, pixel_size_um=S_UM)
     assert _rms(kept - flat) < 0.1
 
 
