@@ -1,15 +1,20 @@
 """Reconstruction benchmark: speed, memory and accuracy of the four surfaces.
 
-    .venv/bin/python bench/reconstruct.py [--preset paper] [--seeds 0] [--noise default]
-                                          [--size WxH] [--work DIR]
+    .venv/bin/python bench/reconstruct.py [--preset paper] [--seeds 0,1,2] [--noise default]
+                                          [--size WxH] [--work DIR] [--no-speed]
 
 For each seed: simulate a scan (worker.simulate; kept in --work to be reused), then
 1. decode: the time to decode every image of the bundle to radiance (the floor);
 2. the whole pipeline (`reconstruct_bundle`, default fusion) in a child process: time per
    stage, total, and the child's peak resident memory (getrusage ru_maxrss);
-3. accuracy (worker.recon.evaluate) and fusion time of the four surfaces: fringe heights
-   alone (5×5 median), normals integrated alone, the paper's fusion, the default fusion.
-Prints markdown tables (docs/benchmarks.md keeps the last run).
+3. accuracy (worker.recon.evaluate) and fusion time (wall and CPU) of the four surfaces:
+   fringe heights alone (5×5 median), normals integrated alone, the paper's fusion, the
+   default fusion (sharpened by the camera blur measured on the bundle), with the wedge
+   depth error split into its rim and bottom parts (signed means, median offset removed:
+   + is too high, so a bottom at +2 and a rim at 0 is a wedge 2 µm too shallow).
+With several seeds, a summary table (mean and worst over the seeds) closes the output.
+Prints markdown tables (docs/benchmarks.md keeps the last run). Model directories of the
+speed runs go to a temporary folder, never into --work (which may be a shared cache).
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ import numpy as np  # noqa: E402
 
 from worker.bundle import open_bundle  # noqa: E402
 from worker.measure import measure_bundle  # noqa: E402
-from worker.pipeline import _mask, reconstruct_bundle, surface_of  # noqa: E402
+from worker.pipeline import _mask, camera_blur_px, reconstruct_bundle, surface_of  # noqa: E402
 from worker.recon.evaluate import evaluate  # noqa: E402
 from worker.simulate import simulate_scan  # noqa: E402
 
@@ -84,17 +89,44 @@ def pipeline_run(bundle_path: Path, out_dir: Path) -> dict:
     return result
 
 
-def accuracy(sim: Path) -> list[dict]:
+def _wedge_parts(h, gt_h, wedges, inner, sel) -> tuple[float, float]:
+    """Mean signed rim and bottom height errors (µm) at the evaluated wedges, after removing
+    the median height offset (the same offset as worker.recon.evaluate)."""
+    from scipy import ndimage
+
+    offset = float(np.median((h - gt_h)[sel])) if sel.any() else 0.0
+    h_fill = np.where(np.isfinite(h), h, np.nanmedian(h))
+    rims, bottoms = [], []
+    for w in wedges:
+        b = w["bottom"]
+        r, c = int(round(b["row"])), int(round(b["col"]))
+        if not (0 <= r < inner.shape[0] and 0 <= c < inner.shape[1]) or not inner[r, c]:
+            continue
+
+        def at(a, p):
+            return float(ndimage.map_coordinates(a, [[p["row"]], [p["col"]]], order=1)[0])
+
+        rims.append(np.mean([at(h_fill, p) - at(gt_h, p) for p in w["rim"]]) - offset)
+        bottoms.append(at(h_fill, b) - at(gt_h, b) - offset)
+    return (float(np.mean(rims)), float(np.mean(bottoms))) if rims else (np.nan, np.nan)
+
+
+def accuracy(sim: Path) -> tuple[list[dict], float]:
+    from scipy import ndimage
+
     gt = {k: np.load(sim / "gt" / f"{k}.npy") for k in ("height", "normals", "mask")}
     wedges = json.loads((sim / "gt" / "wedges.json").read_text())["wedges"]
     with open_bundle(sim / "bundle") as b:
         meas = measure_bundle(b, progress=lambda s, f: None)
+        blur = camera_blur_px(b)
     mask = _mask(meas)
+    inner = ndimage.binary_erosion(gt["mask"], structure=np.ones((3, 3), bool), iterations=4)
+    slope_ok = np.abs(gt["normals"][..., 2]) > np.cos(np.radians(60.0))
     rows = []
     for label, fusion, surface in SURFACES:
-        t0 = time.perf_counter()
-        h, n, _ = surface_of(meas, mask, fusion=fusion, surface=surface)
-        dt = time.perf_counter() - t0
+        t0, c0 = time.perf_counter(), time.process_time()
+        h, n, _ = surface_of(meas, mask, fusion=fusion, surface=surface, blur_sigma_px=blur)
+        dt, dc = time.perf_counter() - t0, time.process_time() - c0
         m = mask & np.isfinite(h)
         figs = evaluate(
             h,
@@ -105,8 +137,32 @@ def accuracy(sim: Path) -> list[dict]:
             gt_mask=gt["mask"],
             wedges=wedges,
         )
-        rows.append({"surface": label, "time_s": dt, **figs})
-    return rows
+        rim, bottom = _wedge_parts(h, gt["height"], wedges, inner, inner & slope_ok & m)
+        rows.append(
+            {"surface": label, "time_s": dt, "cpu_s": dc, "rim_um": rim, "bottom_um": bottom} | figs
+        )
+    return rows, blur
+
+
+def _summary(per_seed: dict[int, list[dict]]) -> None:
+    print(f"\n### Summary over seeds {sorted(per_seed)} (mean / worst)\n")
+    print(
+        "| surface | coverage | height MAE µm | height RMS µm | normal median ° "
+        "| wedge depth MAE µm |\n|---|---|---|---|---|---|"
+    )
+    labels = [r["surface"] for r in next(iter(per_seed.values()))]
+    for i, label in enumerate(labels):
+        seed_rows = [rows[i] for rows in per_seed.values()]
+
+        def stat(key, worst=max, scale=1.0, fmt=".2f", seed_rows=seed_rows):
+            v = [scale * r[key] for r in seed_rows]
+            return f"{np.mean(v):{fmt}} / {worst(v):{fmt}}"
+
+        print(
+            f"| {label} | {stat('coverage', min, 100)} % | {stat('height_mae_um')} "
+            f"| {stat('height_rms_um')} | {stat('normal_median_deg')} "
+            f"| {stat('wedge_depth_mae_um')} |"
+        )
 
 
 def main(argv=None) -> int:
@@ -122,12 +178,14 @@ def main(argv=None) -> int:
     work = Path(args.work or tempfile.mkdtemp(prefix="bench-recon-"))
     work.mkdir(parents=True, exist_ok=True)
     seeds = [int(s) for s in args.seeds.split(",")]
+    per_seed: dict[int, list[dict]] = {}
     print(f"preset {args.preset}, noise {args.noise}, seeds {seeds}, size {size or 'preset'}")
     for seed in seeds:
         sim = simulate(work, seed=seed, preset=args.preset, noise=args.noise, size=size)
         if not args.no_speed:
             dec, dec_cpu, nframes = decode_time(sim / "bundle")
-            run = pipeline_run(sim / "bundle", work / f"model-s{seed}")
+            with tempfile.TemporaryDirectory(prefix="bench-model-") as tmp:
+                run = pipeline_run(sim / "bundle", Path(tmp) / "model")
             t = run["timings"]
             print(f"\n### Speed and memory, seed {seed} ({nframes} images)\n")
             print("| stage | seconds |\n|---|---|")
@@ -139,18 +197,24 @@ def main(argv=None) -> int:
                 f"{run['cpu']:.1f}, decode {dec_cpu:.1f} (ratio {run['cpu'] / dec_cpu:.2f}); "
                 f"peak RSS {run['maxrss_mib']:.0f} MiB"
             )
-        rows = accuracy(sim)
-        print(f"\n### Accuracy, seed {seed}\n")
+        rows, blur = accuracy(sim)
+        per_seed[seed] = rows
+        print(f"\n### Accuracy, seed {seed} (camera blur measured: σ = {blur:.3f} px)\n")
         print(
             "| surface | coverage | height MAE µm | height RMS µm | normal median ° "
-            "| wedge depth MAE µm | surface time s |\n|---|---|---|---|---|---|---|"
+            "| wedge depth MAE µm | rim / bottom µm | surface wall s | CPU s |"
+            "\n|---|---|---|---|---|---|---|---|---|"
         )
         for r in rows:
             print(
                 f"| {r['surface']} | {100 * r['coverage']:.2f} % | {r['height_mae_um']:.2f} "
                 f"| {r['height_rms_um']:.2f} | {r['normal_median_deg']:.2f} "
-                f"| {r['wedge_depth_mae_um']:.2f} ({r['wedges']}) | {r['time_s']:.2f} |"
+                f"| {r['wedge_depth_mae_um']:.2f} ({r['wedges']}) "
+                f"| {r['rim_um']:+.2f} / {r['bottom_um']:+.2f} | {r['time_s']:.2f} "
+                f"| {r['cpu_s']:.2f} |"
             )
+    if len(per_seed) > 1:
+        _summary(per_seed)
     return 0
 
 
