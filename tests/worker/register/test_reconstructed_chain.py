@@ -1,0 +1,94 @@
+"""Registration through the whole chain (issue 8): the six faces of the synthetic tablet are
+simulated (quick preset at 160×128, 214 µm pixels, default noise), reconstructed by the
+pipeline and registered from their recorded poses.
+
+At this pixel size the issue's 0.05° is *not* reached from the reconstructed heights (measured
+0.24° for seed 0, 0.10° for seed 1; it is at 107 µm pixels, bench/register_reconstructed.py,
+docs/registration.md "Accuracy"): the views overlap only on the tablet's steep, rounded rims,
+where the reconstruction has no fringe heights (slopes beyond ~45° at this pixel) and its
+heights, integrated from the normals, carry smooth errors of ~5–7 µm; a narrow edge scan's roll
+about its long axis is fixed by those rims alone. What is tested:
+
+- the registration itself meets the issue's criteria on the reconstruction's own masks,
+  normals and sampling when the heights are right (the simulator's true heights);
+- from the reconstructed heights, the relative poses are within one pixel everywhere on the
+  tablet (translation, and rotation times the tablet's radius).
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from worker.pipeline import reconstruct_bundle
+from worker.register.align import object_diameter_mm
+from worker.register.io import load_model_dir
+from worker.register.pointcloud import scan_cloud
+from worker.register.refine import register_scans
+from worker.simulate import simulate_scan
+
+from .synthetic import relative_errors, truth_transform
+
+SIZE = (160, 128)
+
+
+def _chain(work):
+    sim = simulate_scan(work / "sim", seed=0, face="all", preset="quick", size=SIZE)
+    poses = json.loads((work / "sim" / "poses.json").read_text())["poses"]
+    scans, raw, truths = [], [], []
+    for face, bundle in sim.bundles.items():
+        reconstruct_bundle(bundle, work / face)
+        scan, arrays = load_model_dir(work / face)
+        scans.append(scan)
+        raw.append(
+            arrays | {"normals": np.load(work / face / "normals.npy"), "gt": sim.gt_dirs[face]}
+        )
+        p = poses[face]
+        truths.append(truth_transform(np.array(p["rotation"]), np.array(p["translation_um"])))
+    return scans, raw, truths
+
+
+@pytest.mark.slow
+def test_six_reconstructed_faces_register(tmp_path):
+    """One test (one simulation and six reconstructions, ~20 CPU s) rather than two that
+    xdist could give a fixture each."""
+    scans, raw, truths = _chain(tmp_path)
+    pixel_mm = scans[0].pixel_size_um / 1000
+
+    # 1. The registration itself, on the reconstruction's masks, normals and sampling with
+    # the true heights: issue 8's 0.05° and one pixel (measured 0.014° / 12.5 µm).
+    true_height = [
+        scan_cloud(
+            np.load(r["gt"] / "height.npy"),
+            r["normals"],
+            r["mask"],
+            r["albedo"],
+            pixel_size_um=s.pixel_size_um,
+            label=s.label,
+            face=s.face,
+            pose=s.pose,
+        )
+        for s, r in zip(scans, raw, strict=True)
+    ]
+    rot_deg, trans_mm = relative_errors(register_scans(true_height).transforms, truths)
+    assert rot_deg < 0.05, rot_deg
+    assert trans_mm < pixel_mm, trans_mm
+
+    # 2. The reconstructed heights.
+    reg = register_scans(scans)
+    assert reg.init == ["pose"] * 6
+    assert reg.restarts == []  # correct poses are not replaced by a turned start
+    rot_deg, trans_mm = relative_errors(reg.transforms, truths)
+    radius_mm = object_diameter_mm(scans) / 2
+    # One pixel everywhere on the tablet: the translation, and the arc the rotation error
+    # sweeps at the tablet's radius (measured 102 µm and 0.24° · 15 mm = 62 µm, pixel 214 µm).
+    assert trans_mm < pixel_mm, trans_mm
+    assert np.radians(rot_deg) * radius_mm < pixel_mm, rot_deg
+    # Each face meets its four neighbours (the box's 12 edges). Their misfit is what the
+    # heights' noise allows: reconstructed rim heights are off by ≤ 13 µm RMS (bench --rim),
+    # two samples at ~45° to the normal give ≈ 13 µm along it (measured 3.6–7.1 µm inliers).
+    used = [p for p in reg.pairs if p.used]
+    assert len(used) == 12
+    assert all(p.surface_rms_um < 13.0 for p in used), [p.surface_rms_um for p in used]
