@@ -166,9 +166,13 @@ def camera_blur_px(bundle, *, max_sets: int = 5) -> float:
     if not candidates:
         return 0.0
     (azimuth, _), by_period = candidates[0]
-    periods = sorted(by_period)
+    s = float(bundle.manifest.camera.pixel_size_um)
+    # Periods under 3 px alias (and are left out of the fit anyway).
+    periods = [p for p in sorted(by_period) if p >= 3 * s]
+    if len(periods) < 2:
+        return 0.0
     chosen = periods[: max_sets - 1]
-    coarse = [p for p in periods if p >= 6 * periods[0]]
+    coarse = [p for p in periods if p >= 6 * periods[0] and p not in chosen]
     if coarse:
         chosen.append(min(coarse, key=lambda p: abs(np.log(p / (8 * periods[0])))))
     frames = [
@@ -182,7 +186,6 @@ def camera_blur_px(bundle, *, max_sets: int = 5) -> float:
         m = four_step_phase(crop[4 * i : 4 * i + 4]).modulation
         m = m[np.isfinite(m)]
         mods.append(float(np.median(m)) if m.size else np.nan)
-    s = float(bundle.manifest.camera.pixel_size_um)
     return camera_blur_sigma_px(np.array(chosen) / s, np.array(mods), azimuth_deg=azimuth)
 
 
