@@ -15,6 +15,8 @@ from worker.recon.unwrap import noise_aware_unwrap
 
 __all__ = ["measure_fringes"]
 
+_Z = float(np.sqrt(2.0 * np.log(1e3)))  # noise_aware_unwrap's default max_ambiguity 1e-3
+
 
 def _fringe_sets(bundle, fringe, meas):
     """{(azimuth, polar): [(period, [4 object frames], [4 reference frames]), coarse → fine]}."""
@@ -94,7 +96,11 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress):
             )
             # One level rejected although its fringe was seen is common (a corrupt level, a
             # blurred finest period); two or more mostly mean an order went wrong before.
-            ok = np.isfinite(h) & (un.conflicts <= 1)
+            # A pixel that stopped at a coarse level may be right but is too imprecise to
+            # be a measurement (σ_h up to mm, worse than filling from its neighbours): keep
+            # it only if its phase could fix the finest period's order (σ ≤ π/z, z of the
+            # unwrapping's ambiguity test).
+            ok = np.isfinite(h) & (un.conflicts <= 1) & (un.sigma_rad * _Z <= np.pi)
             heights.append(np.where(ok, h, np.nan).astype(np.float32))
             sigmas.append(np.where(ok, sigma_h, np.nan).astype(np.float32))
             m = obj_phase.modulation
