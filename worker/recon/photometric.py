@@ -25,6 +25,7 @@ from worker.recon.photometric_fit import (
     asymmetric_refine,
     estimate_sigma,
     initial_inliers,
+    mirror_trim,
     robust_fit,
 )
 
@@ -45,12 +46,14 @@ class PhotometricResult:
         misfit in units of n·l (0 for an exact fit, always 0 with exactly 3 inliers); NaN where
         not solved.
     lights_used : (H, W) int16, number of inlier lights (0 where not solved).
+    noise_sigma : float, σ of the shading noise used for the tolerances (given or estimated).
     """
 
     normals: np.ndarray
     albedo: np.ndarray
     residual: np.ndarray
     lights_used: np.ndarray
+    noise_sigma: float = 0.0
 
 
 def light_directions(azimuth_deg, polar_deg) -> np.ndarray:
@@ -104,6 +107,7 @@ def photometric_stereo(
     noise_sigma: float | None = None,
     noise_k: float = 3.0,
     max_iterations: int = 6,
+    highlight_rounds: int = 12,
 ) -> PhotometricResult:
     """Robust Lambertian photometric stereo, vectorised over pixels.
 
@@ -128,6 +132,9 @@ def photometric_stereo(
         σ of the shading noise; estimated robustly from the data when None.
     max_iterations : int
         Re-selection rounds after the first fit (stops early when the inlier sets settle).
+    highlight_rounds : int
+        Rounds of :func:`photometric_fit.mirror_trim` (0: off), which peels specular samples
+        nearest the mirror direction of the fit while they sit significantly above it.
 
     Returns
     -------
@@ -144,6 +151,10 @@ def photometric_stereo(
         raise ValueError(f"noise_sigma must be >= 0, got {noise_sigma}")
     k, h, w = s_all.shape
     lights32 = lights.astype(np.float32)
+    # Half vectors between each light and the view direction (0, 0, −1) of the spec's
+    # orthographic camera: where specular highlights peak.
+    half = lights + np.array([0.0, 0.0, -1.0])
+    half32 = (half / np.linalg.norm(half, axis=1, keepdims=True)).astype(np.float32)
     iu = np.triu_indices(3)
     ll6 = (lights[:, :, None] * lights[:, None, :])[:, iu[0], iu[1]].astype(np.float32)
 
@@ -178,9 +189,11 @@ def photometric_stereo(
         s = flat[:, idx].astype(np.float32)
         valid = np.isfinite(s)
         s = np.where(valid, s, np.float32(0.0))
-        cand, _ = initial_inliers(s, valid, shadow_fraction)
-        model = Model(s, valid, lights32, ll6, shadow_fraction, outlier_tolerance, abs_tol)
+        cand, _ = initial_inliers(s, valid, shadow_fraction, abs_tol)
+        model = Model(s, valid, lights32, ll6, shadow_fraction, outlier_tolerance, abs_tol, half32)
         b, ok, inl = robust_fit(model, cand, max_iterations)
+        if highlight_rounds:
+            inl, b, ok = mirror_trim(model, inl, b, ok, noise_sigma or 0.0, rounds=highlight_rounds)
         b = asymmetric_refine(model, inl, b, ok, noise_sigma or 0.0)
         rho = np.linalg.norm(b, axis=1)
         ok &= rho > 0
@@ -202,4 +215,5 @@ def photometric_stereo(
         albedo=albedo.reshape(h, w),
         residual=residual.reshape(h, w),
         lights_used=used.reshape(h, w),
+        noise_sigma=float(noise_sigma or 0.0),
     )

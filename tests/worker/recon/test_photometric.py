@@ -110,8 +110,12 @@ def test_sphere_normals_with_cast_shadows_and_specular_highlights(
     assert np.max(z2[~grey]) < 40.0
     # Grey pixels carry a bias of up to the tolerance; they must still be mostly close.
     assert np.median(z2[grey]) < 9.0
-    # Every clear highlight and cast shadow was left out and every clean sample kept.
-    assert np.mean(agree) > 0.99
+    # Every clear highlight and cast shadow was left out and every clean sample kept, but for
+    # the highlight peeling (mirror_trim), which drops the clean sample nearest the mirror
+    # direction when noise puts it 2.5 global σ above the fit: under shot noise that sample,
+    # among the brightest, has up to ~1.5× the global σ, P(N > 2.5/1.5) ≈ 5 % at worst and
+    # ~1 % over this sphere; 2 % is the bound.
+    assert np.mean(agree) > 0.98
     # Albedo: σ_ρ/ρ ≈ σ_s/(ρ·sqrt(m/2)) ≈ 0.004/(0.5·1.7) ≈ 0.5 % with m ≈ 6 lights; the
     # median |error| of a normal variable is 0.67σ; 1.5 % catches biases, not noise.
     assert albedo_err < 0.015
