@@ -100,51 +100,63 @@ def _without_highlights(shading, lights, first, *, cone_deg=HIGHLIGHT_CONE_DEG, 
     sigma = float(first.noise_sigma)
     if not sigma > 0:
         return first
+    k, h, w = shading.shape
     half = lights + np.array([0.0, 0.0, -1.0])
     half = (half / np.linalg.norm(half, axis=1, keepdims=True)).astype(np.float32)
     lights32 = lights.astype(np.float32)
-    solved = np.all(np.isfinite(first.normals), axis=-1)
-    n = np.where(solved[..., None], first.normals, np.float32(0.0))
-    finite = np.isfinite(shading)
+    # Everything below runs on the solved pixels only, as (K, n) columns.
+    normals = first.normals.reshape(-1, 3)
+    pix = np.flatnonzero(np.isfinite(normals[:, 0]))
+    n = normals[pix]
+    s = shading.reshape(k, -1)[:, pix]
+    finite = np.isfinite(s)
     # With four inliers or fewer the fit bends to a highlight until its residual says little
     # (leverage near 1; with three it is zero) and its normal may be off by degrees: there
     # the cone is widened by 10° and every sample in it is a suspect.
-    few = first.lights_used <= 4
+    few = first.lights_used.ravel()[pix] <= 4
     cone_cos = np.where(few, np.cos(np.radians(cone_deg + 10.0)), np.cos(np.radians(cone_deg)))
-    near = (np.einsum("hwc,kc->khw", n, half) > cone_cos.astype(np.float32)) & finite
-    b = n * np.where(solved, first.albedo, np.float32(0.0))[..., None]
-    above = (shading - np.einsum("hwc,kc->khw", b, lights32)) > np.float32(sigma)
-    above |= few[None]
-    redo = np.any(near & above, axis=0) & (np.sum(finite & ~near, axis=0) >= 3) & solved
+    near = (half @ n.T > cone_cos.astype(np.float32)) & finite
+    b = n * first.albedo.ravel()[pix, None]
+    with np.errstate(invalid="ignore"):
+        suspect = near & ((s - lights32 @ b.T > np.float32(sigma)) | few)
+    redo = np.any(suspect, axis=0) & (np.sum(finite & ~near, axis=0) >= 3)
     if not redo.any():
         return first
-    cleaned = np.where(near & redo[None], np.float32(np.nan), shading)
-    second = photometric_stereo(cleaned, lights, mask=redo, noise_sigma=sigma)
-    ok = redo & np.all(np.isfinite(second.normals), axis=-1)
-    pix = np.flatnonzero(ok)
-    k = shading.shape[0]
-    s = shading.reshape(k, -1)[:, pix]
-    dropped = near.reshape(k, -1)[:, pix]
-    b2 = (second.normals * second.albedo[..., None]).reshape(-1, 3)[pix]
+    pix, s, near = pix[redo], s[:, redo], near[:, redo]
+    cleaned = np.where(near, np.float32(np.nan), s)
+    second = photometric_stereo(cleaned[:, None, :], lights, noise_sigma=sigma)
+    b2 = (second.normals * second.albedo[..., None]).reshape(-1, 3)
+    ok = np.isfinite(b2[:, 0])
+    b2 = np.where(ok[:, None], b2, np.float32(0.0))
     pred = lights @ b2.T
-    excess = np.where(dropped, s - pred, 0.0).sum(axis=0)
-    m = dropped.sum(axis=0)
+    excess = np.where(near, s - pred, 0.0).sum(axis=0)
+    m = near.sum(axis=0)
     # The standard error of the mean excess: noise of the m samples plus that of the new
     # fit's prediction at their mean direction ū, σ²·ūᵀM⁻¹ū with M = Σ l lᵀ over the lights
     # in front of it (an extrapolation from grazing lights is uncertain).
-    front = np.isfinite(s) & ~dropped & (pred > 0.1 * np.linalg.norm(b2, axis=1))
-    mm = np.einsum("kn,ki,kj->nij", front.astype(np.float64), lights, lights)
-    u = np.einsum("kn,ki->ni", dropped.astype(np.float64), lights) / m[:, None]
-    ok_m = np.linalg.det(mm) > 1e-9
-    mm[~ok_m] = np.eye(3)
+    front = np.isfinite(s) & ~near & (pred > 0.1 * np.linalg.norm(b2, axis=1))
+    iu = np.triu_indices(3)
+    mm6 = front.T.astype(np.float64) @ (lights[:, :, None] * lights[:, None, :])[:, iu[0], iu[1]]
+    mm = mm6[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
+    u = (near.T.astype(np.float64) @ lights) / m[:, None]
+    ok &= np.linalg.det(mm) > 1e-9
+    mm[~ok] = np.eye(3)
     spread = np.einsum("ni,ni->n", u, np.linalg.solve(mm, u[..., None])[..., 0])
-    z = excess / m / (sigma * np.sqrt(1.0 / m + spread))
-    ok.ravel()[pix] = ok_m & (z > k_sigma)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = excess / m / (sigma * np.sqrt(1.0 / m + spread))
+    ok &= z > k_sigma
+    pix = pix[ok]
+
+    def merged(a, b):
+        out = a.reshape(h * w, -1).copy()
+        out[pix] = b.reshape(-1, out.shape[1])[ok]
+        return out.reshape(a.shape)
+
     return PhotometricResult(
-        normals=np.where(ok[..., None], second.normals, first.normals),
-        albedo=np.where(ok, second.albedo, first.albedo),
-        residual=np.where(ok, second.residual, first.residual),
-        lights_used=np.where(ok, second.lights_used, first.lights_used),
+        normals=merged(first.normals, second.normals),
+        albedo=merged(first.albedo, second.albedo),
+        residual=merged(first.residual, second.residual),
+        lights_used=merged(first.lights_used, second.lights_used),
         noise_sigma=sigma,
     )
 
