@@ -118,9 +118,15 @@ def fuse_default(
         )
     lam = _anchor_parts_without_data(m_c, lam, wx, wy)
     x0 = np.where(has_f, f_c, np.float32(np.nanmedian(f_c[has_f]) if has_f.any() else 0))
-    sol = solve_screened_poisson(tx, ty, wx, wy, data_um=f_c, data_weight=lam, x0_um=x0, rtol=rtol)
+    robust_pass = has_f.any() and outlier_sigmas > 0 and robust_passes > 0
+    # With a robust pass to follow, the first solve only sets the weights (and warm-starts
+    # the last solve): 1e-3 is enough for residuals judged at 4σ.
+    first_rtol = max(rtol, 1e-3) if robust_pass else rtol
+    sol = solve_screened_poisson(
+        tx, ty, wx, wy, data_um=f_c, data_weight=lam, x0_um=x0, rtol=first_rtol
+    )
     h = sol.height_um
-    if has_f.any() and outlier_sigmas > 0:
+    if robust_pass:
         k = np.float32(outlier_sigmas)
         for _ in range(robust_passes):
             with np.errstate(invalid="ignore", divide="ignore"):
