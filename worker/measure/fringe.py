@@ -109,6 +109,7 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress):
     comb = consensus_azimuths(np.stack(heights), np.stack(sigmas))
     meas.fringe_height_um = comb.height_um
     meas.fringe_spread_um = comb.spread_um
+    meas.fringe_sigma_um = comb.sigma_um
     meas.azimuths_used = comb.azimuths_used
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)

@@ -27,6 +27,7 @@ class Measurements:
     rgb_linear: np.ndarray | None = None
     fringe_height_um: np.ndarray | None = None
     fringe_spread_um: np.ndarray | None = None
+    fringe_sigma_um: np.ndarray | None = None  # predicted σ of fringe_height_um (phase noise)
     azimuths_used: np.ndarray | None = None
     modulation: np.ndarray | None = None
     rough_height_um: np.ndarray | None = None  # smooth, filled: where the light came from

@@ -163,6 +163,8 @@ def test_consensus_drops_a_precise_minority_azimuth_off_by_a_fringe_order():
     n = res.azimuths_used[20:]
     # Inliers: the weighted mean has σ = (Σ 1/σ_a²)^−½ ≤ 3/√2 µm; 6σ over 2,400 pixels.
     assert np.all(np.abs(body) <= 6 * 3.0 / np.sqrt(2))
+    # σ of the mean of the inliers: 1/√(Σ 1/σ²) = 3/√(2 + 2/4) on the right (all four).
+    np.testing.assert_allclose(np.median(res.sigma_um[20:, 20:]), 3 / np.sqrt(2.5), rtol=0.05)
     # The wrong azimuth never counts; honest azimuths fall outside 4σ·√2-ish only rarely.
     assert np.all(n[:, :20] <= 3)
     assert np.mean(n[:, :20] == 3) > 0.98 and np.mean(n[:, 20:] == 4) > 0.98
