@@ -7,12 +7,10 @@ import numpy as np
 
 from worker.measure.frames import angle_key
 from worker.recon.color import rgb_reflectance
-from worker.recon.photometric import PhotometricResult, light_directions, photometric_stereo
+from worker.recon.photometric import light_directions, photometric_stereo
 from worker.recon.radiometry import flat_field
 
 __all__ = ["measure_color", "measure_photometric"]
-
-HIGHLIGHT_CONE_DEG = 20.0
 
 
 def _source_footprint(ref_stack, frames, height_um, pixel_size_um):
@@ -68,97 +66,13 @@ def measure_photometric(bundle, photo, meas, rho_ref):
     az = np.array([f.azimuth_deg for f in photo])
     polar = np.array([f.polar_deg for f in photo])
     lights = light_directions(az, polar)
-    res = _without_highlights(shading, lights, photometric_stereo(shading, lights))
+    res = photometric_stereo(shading, lights)
     meas.normals = res.normals
     meas.albedo = res.albedo
     meas.residual = res.residual
     meas.lights_used = res.lights_used
     meas.photometric_polar_deg = float(np.median(polar))
     meas.used["photometric_azimuths_deg"] = sorted({angle_key(a) for a in az})
-
-
-def _without_highlights(shading, lights, first, *, cone_deg=HIGHLIGHT_CONE_DEG, k_sigma=1.5):
-    """Solve again without the samples seen near the mirror direction of their light, where
-    those samples prove to be highlights.
-
-    A glossy surface (fired clay, consolidants) adds a highlight where the normal is near
-    the half vector h_k = (l_k + v)/|l_k + v| of light k and the camera direction v =
-    (0, 0, −1). Highlights a few per cent above the Lambertian shading pass any outlier test
-    yet tilt the normal by a degree or more; the geometry tells where they can be. The
-    samples within `cone_deg` of the mirror direction that lie above the first fit are left
-    out (NaN) and the pixel solved again from the others (three suffice). A highlight only
-    adds light, so the new solution is kept only where the left-out samples sit above it:
-    their mean excess over it exceeds `k_sigma` standard errors of the shading noise. On a
-    matte surface that happens by chance for ~7 % of the pixels (1.5σ: a fit on fewer
-    lights, still unbiased), whatever the number of lights, their polar angles or the lobe's
-    width. The standard error includes the new fit's own uncertainty at the left-out
-    directions, so a re-solve that extrapolates from a few grazing lights needs more proof.
-    The 20° cone is where a Blinn–Phong lobe of exponent 40 still exceeds 8 % of its peak;
-    wider cones cost accuracy on our simulated scans (25°, 30°: median 0.67° → 0.71°, 0.73°),
-    broad lobes are the robust fit's business (`photometric_fit.mirror_trim`).
-    """
-    sigma = float(first.noise_sigma)
-    if not sigma > 0:
-        return first
-    k, h, w = shading.shape
-    half = lights + np.array([0.0, 0.0, -1.0])
-    half = (half / np.linalg.norm(half, axis=1, keepdims=True)).astype(np.float32)
-    lights32 = lights.astype(np.float32)
-    # Everything below runs on the solved pixels only, as (K, n) columns.
-    normals = first.normals.reshape(-1, 3)
-    pix = np.flatnonzero(np.isfinite(normals[:, 0]))
-    n = normals[pix]
-    s = shading.reshape(k, -1)[:, pix]
-    finite = np.isfinite(s)
-    # With four inliers or fewer the fit bends to a highlight until its residual says little
-    # (leverage near 1; with three it is zero) and its normal may be off by degrees: there
-    # the cone is widened by 10° and every sample in it is a suspect.
-    few = first.lights_used.ravel()[pix] <= 4
-    cone_cos = np.where(few, np.cos(np.radians(cone_deg + 10.0)), np.cos(np.radians(cone_deg)))
-    near = (half @ n.T > cone_cos.astype(np.float32)) & finite
-    b = n * first.albedo.ravel()[pix, None]
-    with np.errstate(invalid="ignore"):
-        suspect = near & ((s - lights32 @ b.T > np.float32(sigma)) | few)
-    redo = np.any(suspect, axis=0) & (np.sum(finite & ~near, axis=0) >= 3)
-    if not redo.any():
-        return first
-    pix, s, near = pix[redo], s[:, redo], near[:, redo]
-    cleaned = np.where(near, np.float32(np.nan), s)
-    second = photometric_stereo(cleaned[:, None, :], lights, noise_sigma=sigma)
-    b2 = (second.normals * second.albedo[..., None]).reshape(-1, 3)
-    ok = np.isfinite(b2[:, 0])
-    b2 = np.where(ok[:, None], b2, np.float32(0.0))
-    pred = lights @ b2.T
-    excess = np.where(near, s - pred, 0.0).sum(axis=0)
-    m = near.sum(axis=0)
-    # The standard error of the mean excess: noise of the m samples plus that of the new
-    # fit's prediction at their mean direction ū, σ²·ūᵀM⁻¹ū with M = Σ l lᵀ over the lights
-    # in front of it (an extrapolation from grazing lights is uncertain).
-    front = np.isfinite(s) & ~near & (pred > 0.1 * np.linalg.norm(b2, axis=1))
-    iu = np.triu_indices(3)
-    mm6 = front.T.astype(np.float64) @ (lights[:, :, None] * lights[:, None, :])[:, iu[0], iu[1]]
-    mm = mm6[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
-    u = (near.T.astype(np.float64) @ lights) / m[:, None]
-    ok &= np.linalg.det(mm) > 1e-9
-    mm[~ok] = np.eye(3)
-    spread = np.einsum("ni,ni->n", u, np.linalg.solve(mm, u[..., None])[..., 0])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        z = excess / m / (sigma * np.sqrt(1.0 / m + spread))
-    ok &= z > k_sigma
-    pix = pix[ok]
-
-    def merged(a, b):
-        out = a.reshape(h * w, -1).copy()
-        out[pix] = b.reshape(-1, out.shape[1])[ok]
-        return out.reshape(a.shape)
-
-    return PhotometricResult(
-        normals=merged(first.normals, second.normals),
-        albedo=merged(first.albedo, second.albedo),
-        residual=merged(first.residual, second.residual),
-        lights_used=merged(first.lights_used, second.lights_used),
-        noise_sigma=sigma,
-    )
 
 
 def measure_color(bundle, color, meas, rho_ref):

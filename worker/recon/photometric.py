@@ -23,6 +23,7 @@ import numpy as np
 from worker.recon.photometric_fit import (
     Model,
     asymmetric_refine,
+    cone_resolve,
     estimate_sigma,
     initial_inliers,
     mirror_trim,
@@ -108,6 +109,7 @@ def photometric_stereo(
     noise_k: float = 3.0,
     max_iterations: int = 6,
     highlight_rounds: int = 12,
+    highlight_cone_deg: float | None = 20.0,
 ) -> PhotometricResult:
     """Robust Lambertian photometric stereo, vectorised over pixels.
 
@@ -135,6 +137,12 @@ def photometric_stereo(
     highlight_rounds : int
         Rounds of :func:`photometric_fit.mirror_trim` (0: off), which peels specular samples
         nearest the mirror direction of the fit while they sit significantly above it.
+    highlight_cone_deg : float or None
+        Half-angle between normal and half vector within which a light's sample may be a
+        highlight: :func:`photometric_fit.cone_resolve` fits such pixels again without
+        those samples and keeps the new fit where they sit significantly above it.  None:
+        off.  Both highlight steps take the view direction (0, 0, −1) of the spec's
+        orthographic camera.
 
     Returns
     -------
@@ -194,6 +202,10 @@ def photometric_stereo(
         b, ok, inl = robust_fit(model, cand, max_iterations)
         if highlight_rounds:
             inl, b, ok = mirror_trim(model, inl, b, ok, noise_sigma or 0.0, rounds=highlight_rounds)
+        if highlight_cone_deg:
+            inl, b = cone_resolve(
+                model, cand, inl, b, ok, noise_sigma or 0.0, cone_deg=highlight_cone_deg
+            )
         b = asymmetric_refine(model, inl, b, ok, noise_sigma or 0.0)
         rho = np.linalg.norm(b, axis=1)
         ok &= rho > 0
