@@ -203,9 +203,15 @@ def photometric_stereo(
         if highlight_rounds:
             inl, b, ok = mirror_trim(model, inl, b, ok, noise_sigma or 0.0, rounds=highlight_rounds)
         if highlight_cone_deg:
-            inl, b = cone_resolve(
-                model, cand, inl, b, ok, noise_sigma or 0.0, cone_deg=highlight_cone_deg
-            )
+            # Then 1.5× wider for broad lobes, on stricter evidence (2.5σ): the band holds
+            # more lights, and on a matte surface each false acceptance costs lights.
+            # Simulated paper scan, median normal error: 20° alone 0.673°, with 30° at 1.5σ
+            # 0.680°, at 2.5σ 0.677°; a Torrance–Sparrow lobe (m = 0.3) over rings at 15–70°:
+            # 0.52°, 0.29°, 0.40°.
+            for cone, k_sig in ((highlight_cone_deg, 1.5), (1.5 * highlight_cone_deg, 2.5)):
+                inl, b = cone_resolve(
+                    model, cand, inl, b, ok, noise_sigma or 0.0, cone_deg=cone, k_sigma=k_sig
+                )
         b = asymmetric_refine(model, inl, b, ok, noise_sigma or 0.0)
         rho = np.linalg.norm(b, axis=1)
         ok &= rho > 0

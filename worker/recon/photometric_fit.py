@@ -461,10 +461,10 @@ def cone_resolve(model, cand, inl, b, ok, sigma, *, cone_deg=20.0, k_sigma=1.5):
     the half vector ĥ_k of light k and the camera direction.  Highlights a few per cent above
     the Lambertian shading pass the relative tolerance yet tilt the normal by a degree or
     more; the geometry tells where they can be.  The samples within ``cone_deg`` of the
-    mirror direction of the fit are suspects when they lie more than σ above it; the pixel
-    is then fitted again from the other lights (three suffice: select, refit, trim).  A
-    highlight only adds light, so the new fit is kept only where the left-out samples sit
-    above it: their mean excess over it exceeds ``k_sigma`` standard errors, the noise of
+    mirror direction of the fit are suspects when they are inliers more than σ above it;
+    the pixel is then fitted again from the other lights (three suffice: select, refit,
+    trim).  A highlight only adds light, so the new fit is kept only where the inliers left
+    out sit above it: their mean excess over it exceeds ``k_sigma`` standard errors, the noise of
     the m samples and the new fit's own uncertainty at their mean direction ū (σ²·ūᵀM⁻¹ū,
     M = Σ l lᵀ over its inliers: extrapolating from a few grazing lights needs more proof).
     On a matte surface that happens by chance for ~7 % of the suspects (1.5σ), at the cost
@@ -472,8 +472,8 @@ def cone_resolve(model, cand, inl, b, ok, sigma, *, cone_deg=20.0, k_sigma=1.5):
     highlight until its residual says little (leverage near 1; with three it is zero) and
     its normal may be off by degrees: there the cone is 10° wider and every sample in it is
     a suspect.  The 20° cone is where a Blinn–Phong lobe of exponent 40 still exceeds 8 % of
-    its peak; wider cones cost accuracy on our simulated scans (25°, 30°: median normal
-    error 0.67° → 0.71°, 0.73°); broad lobes are :func:`mirror_trim`'s business.
+    its peak.  Broader lobes (Torrance–Sparrow, rough glaze) reach further: the caller runs
+    a second, wider cone whose evidence is only the inliers of the band between the two.
     """
     if not sigma > 0 or model.half32 is None:
         return inl, b
@@ -483,21 +483,24 @@ def cone_resolve(model, cand, inl, b, ok, sigma, *, cone_deg=20.0, k_sigma=1.5):
     few = inl.sum(axis=0) <= 4
     cone_cos = np.where(few, np.cos(np.radians(cone_deg + 10.0)), np.cos(np.radians(cone_deg)))
     near = (cos_h > cone_cos.astype(np.float32)) & model.valid
-    suspect = near & ((model.s - model.lights32 @ bc.T > np.float32(sigma)) | few)
+    # Only inliers are suspects: a highlight the fit already rejects needs no re-solve.
+    suspect = near & inl & ((model.s - model.lights32 @ bc.T > np.float32(sigma)) | few[None])
     redo = ok & np.any(suspect, axis=0) & ((model.valid & ~near).sum(axis=0) >= 3)
     cols = np.flatnonzero(redo)
     if cols.size == 0:
         return inl, b
     sub = model.sub(cols)
     near = near[:, cols]
+    dropped = near & inl[:, cols]
     # The cone's samples are no longer valid: no selection may re-admit them.
     sub.valid = sub.valid & ~near
     sub_cand = cand[:, cols] & ~near
     b0, ok0 = _fit(sub.s, inl[:, cols] & ~near, sub.lights32, sub.ll6)
     inl2, b2, ok2 = _settle(sub, sub_cand, b0, ok0)
-    m = near.sum(axis=0)
-    excess = np.where(near, sub.s - sub.lights32 @ b2.astype(np.float32).T, 0.0).sum(axis=0)
-    u = (near.T.astype(np.float32) @ sub.lights32) / m[:, None]
+    # The evidence: the inliers the cone takes away must sit above the new fit.
+    m = dropped.sum(axis=0)
+    excess = np.where(dropped, sub.s - sub.lights32 @ b2.astype(np.float32).T, 0.0).sum(axis=0)
+    u = (dropped.T.astype(np.float32) @ sub.lights32) / m[:, None]
     x, ok_m, _ = _solve_sym3(inl2.T.astype(np.float32) @ sub.ll6, u, 1e-3)
     spread = np.einsum("ni,ni->n", u, x)
     with np.errstate(invalid="ignore", divide="ignore"):
