@@ -249,7 +249,9 @@ def _unwrap_block(w, sig, q, ratio01, z, log_eps, k2):
         # Fringe detection: for pure noise B²/σ_I² is Exp(1)-distributed (the two 4-step
         # quadratures are N(0, 2σ_I²)), so σ_ψ = σ_I/(√2·B) ≤ 1/z has false-alarm rate ε:
         # a shadowed pixel whose noise happens to look like a fringe fixes no order.
-        inv_var = one / np.square(sig)
+        # σ = 0 (noise-free synthetic frames) would make every estimate ∞/∞: floor it at
+        # 1e-5 rad, well above float32 phase rounding and below any camera's noise.
+        inv_var = one / np.square(np.maximum(sig, np.float32(1e-5)))
         detected = inv_var >= z * z
         inv_var[~detected] = 0
         u0 = wrap_phase(w[0])

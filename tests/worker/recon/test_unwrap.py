@@ -268,3 +268,13 @@ def test_noise_aware_unwrap_has_no_gross_errors_at_low_modulation(recon_sense):
     assert np.mean(fin[shadow]) < 0.01
     # Blurred finest periods: the pixel stops at the third-finest level (index 5).
     assert np.mean(res.level_used[blurred] == 5) > 0.99
+
+
+def test_noise_aware_unwrap_takes_noise_free_phases():
+    # σ = 0 from ideal synthetic frames (no residual, no read noise) must not void the pixel.
+    periods = np.array([1000.0, 500.0, 250.0])
+    dpsi_fine = np.linspace(-10, 10, 7)[None, :]
+    levels = np.stack([dpsi_fine * 250 / p for p in periods])
+    res = noise_aware_unwrap(wrap_phase(levels), np.zeros(levels.shape), periods)
+    np.testing.assert_allclose(res.dpsi_rad, dpsi_fine, atol=1e-4)
+    np.testing.assert_array_equal(res.level_used, 2)
