@@ -31,26 +31,27 @@ def _solve_sym3(m6: np.ndarray, rhs: np.ndarray, min_condition: float):
     temporaries).  Returns x (N, 3) float64, a bool mask of the systems whose normalised
     determinant det/(trace/3)^3 exceeds ``min_condition``, and M⁻¹ as (N, 6) (0 where not ok).
     """
-    a, b, c, d, e, f = (m6[:, i].astype(np.float64) for i in range(6))
-    cof = np.stack(
-        [d * f - e * e, c * e - b * f, b * e - c * d, a * f - c * c, b * c - a * e, a * d - b * b],
-        axis=1,
-    )
+    a, b, c, d, e, f = m6.astype(np.float64).T
+    # Written into one (N, 6) array: no per-term stack copies.
+    cof = np.empty((m6.shape[0], 6))
+    np.subtract(d * f, e * e, out=cof[:, 0])
+    np.subtract(c * e, b * f, out=cof[:, 1])
+    np.subtract(b * e, c * d, out=cof[:, 2])
+    np.subtract(a * f, c * c, out=cof[:, 3])
+    np.subtract(b * c, a * e, out=cof[:, 4])
+    np.subtract(a * d, b * b, out=cof[:, 5])
     det = a * cof[:, 0] + b * cof[:, 1] + c * cof[:, 2]
     tr = (a + d + f) / 3.0
     with np.errstate(divide="ignore", invalid="ignore"):
         ok = det > min_condition * tr**3
-        inv6 = cof * np.where(ok, 1.0 / det, 0.0)[:, None]
+        cof *= np.where(ok, 1.0 / det, 0.0)[:, None]
+    inv6 = cof
     i11, i12, i13, i22, i23, i33 = inv6.T
-    r0, r1, r2 = (rhs[:, i].astype(np.float64) for i in range(3))
-    x = np.stack(
-        [
-            i11 * r0 + i12 * r1 + i13 * r2,
-            i12 * r0 + i22 * r1 + i23 * r2,
-            i13 * r0 + i23 * r1 + i33 * r2,
-        ],
-        axis=1,
-    )
+    r0, r1, r2 = rhs.astype(np.float64).T
+    x = np.empty((m6.shape[0], 3))
+    x[:, 0] = i11 * r0 + i12 * r1 + i13 * r2
+    x[:, 1] = i12 * r0 + i22 * r1 + i23 * r2
+    x[:, 2] = i13 * r0 + i23 * r1 + i33 * r2
     return x, ok, inv6
 
 
@@ -190,27 +191,37 @@ class Model:
         misfit = np.where(inl, (r / tol) ** 2, 0.0).sum(axis=0) / np.maximum(m, 1)
         return np.where(ok, m - below.sum(axis=0) - 0.01 * misfit, -np.inf)
 
-    def trim(self, inl, b, ok):
+    def trim(self, inl, b, ok, ratio=None):
         """Backward elimination on studentised residuals r/sqrt(1 − h), one sample per round.
 
         Removing one sample at a time, judged by the residual it would have if left out of
         the fit, catches high-leverage highlights that hide from the raw residuals.
+        ``ratio``: |r|/tol of every sample for the fit b, when the caller has it.
         """
         inl = inl.copy()
         b, ok = b.copy(), ok.copy()
-        cols = np.flatnonzero(inl.sum(axis=0) > 3)
+        cols = None  # the first round looks at every pixel without gathering columns
         # Few rounds: the batch removal below empties most pixels in one or two, and what a
         # round cap leaves is caught by the tolerance test of the next selection.
         for _ in range(min(self.s.shape[0] - 3, 6)):
-            if cols.size == 0:
-                break
-            sub = inl[:, cols]
-            r, tol, _ = self.residual(b[cols], cols)
-            raw = np.where(sub, np.abs(r) / tol, 0.0)
+            if cols is None:
+                if ratio is None:
+                    r, tol, _ = self.residual(b)
+                    ratio = np.divide(np.abs(r, out=r), tol, out=r)
+                raw = np.where(inl, ratio, np.float32(0.0))
+                many = inl.sum(axis=0) > 3
+            else:
+                if cols.size == 0:
+                    break
+                sub = inl[:, cols]
+                r, tol, _ = self.residual(b[cols], cols)
+                raw = np.where(sub, np.abs(r) / tol, 0.0)
+                many = True
             # Leverage rarely exceeds 0.9 with four or more lights, so a sample whose raw
             # ratio is below 0.3 cannot be the worst misfit: skip those pixels cheaply.
-            near = raw.max(axis=0) > 0.3
-            cols, sub, raw = cols[near], sub[:, near], raw[:, near]
+            near = np.flatnonzero((raw.max(axis=0) > 0.3) & many)
+            cols = near if cols is None else cols[near]
+            sub, raw = inl[:, cols], raw[:, near]
             if cols.size == 0:
                 break
             _, _, lev = _fit(self.s[:, cols], sub, self.lights32, self.ll6, leverage=True)
@@ -284,13 +295,21 @@ def _hypotheses(model, cand, delta):
 
 def _settle(model, cand, b0, ok0):
     """From a start b0: select the consistent samples, refit where they changed, trim."""
-    inl = model.select(b0)
+    r, tol, front = model.residual(b0)
+    ratio = np.abs(r, out=r)
+    inl = np.less_equal(ratio, tol)
+    inl &= front
+    inl &= model.valid
     inl = np.where((inl.sum(axis=0) >= 3)[None, :], inl, cand)
+    # |r|/tol of the start, handed to the trim for the pixels whose fit stays b0.
+    ratio /= tol
     b, ok = b0.copy(), ok0.copy()
     moved = np.flatnonzero(np.any(inl != cand, axis=0) | ~ok)
     if moved.size:
         b[moved], ok[moved] = _fit(model.s[:, moved], inl[:, moved], model.lights32, model.ll6)
-    return model.trim(inl, b, ok)
+        r, tol, _ = model.residual(b[moved], moved)
+        ratio[:, moved] = np.abs(r) / tol
+    return model.trim(inl, b, ok, ratio)
 
 
 def robust_fit(model, cand, iterations):
