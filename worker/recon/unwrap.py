@@ -46,9 +46,9 @@ class UnwrappedPhase:
         From :func:`noise_aware_unwrap`: the absolute inverse variance 1/σ² (rad⁻²).
     sigma_rad : (H, W) float32 or None, standard deviation of ``dpsi_rad`` predicted from the
         phase noise (:func:`noise_aware_unwrap` only); NaN where ``dpsi_rad`` is.
-    conflicts : (H, W) int16 or None, number of levels whose phase was precise enough to fix
-        its order yet disagreed with the prediction beyond the noise (a corrupt level, or a
-        wrong order earlier on); :func:`noise_aware_unwrap` only.
+    conflicts : (H, W) int16 or None, number of levels whose fringe was detected but that
+        were not accepted (ambiguous order or residual beyond the noise: a corrupt level, or
+        a wrong order earlier on); :func:`noise_aware_unwrap` only.
     """
 
     dpsi_rad: np.ndarray
@@ -162,6 +162,7 @@ def noise_aware_unwrap(
     *,
     max_ambiguity: float = 1e-3,
     k_sigma: float = 4.0,
+    model_sigma_rad: float = 0.03,
 ) -> UnwrappedPhase:
     """Temporal unwrapping that fixes an order only where the noise makes it unambiguous.
 
@@ -185,10 +186,15 @@ def noise_aware_unwrap(
     ``sqrt(2 ln(1/ε))``·σ_0 from ±π and precise enough to fix the next level's order.  A pixel
     whose coarsest level fails is NaN (no absolute order for it at this azimuth).
 
-    A level precise enough to be unambiguous whose residual fails the noise test is a
-    *conflict*: that level is corrupt (interreflection, highlight), or an earlier order was
-    wrong, in which case the following levels conflict as well.  Callers should drop pixels
-    whose conflicts persist (see ``conflicts``).
+    Each level's variance is σ_i² + ``model_sigma_rad``² for the tests and the weights (not
+    for the detection): the phase error no noise figure shows — the pattern's harmonics, the
+    pixel's area, blur on slopes — so that nearly noise-free data do not call their own
+    model errors inconsistent.
+
+    A detected level that either test rejects is a *conflict*: that level is corrupt
+    (interreflection, highlight), or an earlier order was wrong, in which case the following
+    levels conflict as well (the least-squares estimate, pulled by the right coarser levels,
+    no longer predicts them).  Callers should drop pixels whose conflicts persist.
 
     Parameters
     ----------
@@ -220,7 +226,7 @@ def noise_aware_unwrap(
     # Blocks of rows small enough for the CPU cache: the level loop makes ~30 passes over
     # each, which on whole megapixel images would be bound by memory bandwidth.
     step = max(1, 32768 // max(1, int(np.prod(shape[1:], dtype=np.int64))))
-    consts = (q, np.float32(p[0] / p[1]) if n_lev > 1 else None, z, log_eps, k2)
+    consts = (q, np.float32(p[0] / p[1]) if n_lev > 1 else None, z, log_eps, k2, model_sigma_rad)
     for r0 in range(0, rows, step):
         sl = slice(r0, min(rows, r0 + step))
         est, info, worst, level, conf = _unwrap_block(w[:, sl], sig[:, sl], *consts)
@@ -239,7 +245,7 @@ def noise_aware_unwrap(
     )
 
 
-def _unwrap_block(w, sig, q, ratio01, z, log_eps, k2):
+def _unwrap_block(w, sig, q, ratio01, z, log_eps, k2, model_sigma_rad):
     """:func:`noise_aware_unwrap` on a block of rows; returns est, info, worst, level, conflicts."""
     two_pi = np.float32(_TWO_PI)
     pi = np.float32(np.pi)
@@ -251,9 +257,14 @@ def _unwrap_block(w, sig, q, ratio01, z, log_eps, k2):
         # a shadowed pixel whose noise happens to look like a fringe fixes no order.
         # σ = 0 (noise-free synthetic frames) would make every estimate ∞/∞: floor it at
         # 1e-5 rad, well above float32 phase rounding and below any camera's noise.
-        inv_var = one / np.square(np.maximum(sig, np.float32(1e-5)))
-        detected = inv_var >= z * z
-        inv_var[~detected] = 0
+        # σ = 0 (noise-free synthetic frames) must still count as detected.
+        var = np.square(np.maximum(sig, np.float32(1e-5)))
+        detected = var * (z * z) <= one
+        # The model error no noise figure shows (pattern harmonics, pixel integration, blur
+        # on slopes) bounds every level's precision: without it, nearly noise-free data
+        # would call their own model errors inconsistent.
+        var += np.float32(model_sigma_rad**2)
+        inv_var = np.where(detected, one / var, np.float32(0))
         u0 = wrap_phase(w[0])
         ok = (pi - np.abs(u0)) * np.sqrt(inv_var[0]) >= z
         if ratio01 is not None:

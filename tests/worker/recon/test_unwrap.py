@@ -168,7 +168,8 @@ def test_noise_aware_unwrap_is_exact_without_noise(h_frac, n_levels, ratio):
     # Tiny σ: every order is unambiguous, so every level is used.  The coarsest must stay
     # z·σ from ±π, and with ratio 4 fix the next level: σ·z·4 < π.
     sig = np.full(levels.shape, 1e-4)
-    res = noise_aware_unwrap(wrap_phase(levels), sig, periods)
+    # Exact synthetic phases: no model error to allow for.
+    res = noise_aware_unwrap(wrap_phase(levels), sig, periods, model_sigma_rad=0.0)
     expected = dpsi0 * periods[0] / periods[-1]
     if np.pi - abs(dpsi0) < 3.8e-4:
         return  # within z·σ of ±π: legitimately refused
@@ -190,7 +191,7 @@ def test_noise_aware_unwrap_skips_an_unusable_level_and_flags_a_corrupt_one():
     levels[3, 1] += np.pi / 2
     sig[4, 2] = 0.5
     levels[4, 2] = np.random.default_rng(0).uniform(-np.pi, np.pi, levels.shape[2])
-    res = noise_aware_unwrap(wrap_phase(levels), sig, periods)
+    res = noise_aware_unwrap(wrap_phase(levels), sig, periods, model_sigma_rad=0.0)
     # σ of the estimate: 0.01 rad at the finest level, combined with the coarser ones.
     np.testing.assert_allclose(res.dpsi_rad[[0, 1, 3, 4, 5]], dpsi_fine[[0, 1, 3, 4, 5]], atol=0.1)
     # Row 2 stops at the 100 µm level: its σ is twice the finest-level one, scaled.
@@ -278,3 +279,19 @@ def test_noise_aware_unwrap_takes_noise_free_phases():
     res = noise_aware_unwrap(wrap_phase(levels), np.zeros(levels.shape), periods)
     np.testing.assert_allclose(res.dpsi_rad, dpsi_fine, atol=1e-4)
     np.testing.assert_array_equal(res.level_used, 2)
+
+
+def test_noise_aware_unwrap_allows_for_model_error():
+    # Phases with a systematic error of 0.05 rad per level (pattern harmonics, say) and
+    # next to no noise: with the default model error 0.03 rad the 4σ test allows
+    # 4·0.03·√2 ≈ 0.17 rad of disagreement, so no level is called a conflict.
+    periods = np.array([1000.0, 500.0, 250.0, 125.0])
+    dpsi_fine = np.linspace(-20, 20, 11)[None, :]
+    bias = np.array([0.05, -0.05, 0.05, -0.05])[:, None, None]
+    levels = np.stack([dpsi_fine * 125 / p for p in periods]) + bias
+    sig = np.full(levels.shape, 1e-4)
+    res = noise_aware_unwrap(wrap_phase(levels), sig, periods)
+    np.testing.assert_array_equal(res.conflicts, 0)
+    np.testing.assert_array_equal(res.level_used, 3)
+    strict = noise_aware_unwrap(wrap_phase(levels), sig, periods, model_sigma_rad=0.0)
+    assert np.all(strict.conflicts > 0)
