@@ -72,8 +72,8 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress):
             noise[key] = np.empty(shape, np.float32)
         # Object − reference, left in (−2π, 2π): noise_aware_unwrap wraps where it matters.
         np.subtract(obj_phase.phase_rad, ref_phase.phase_rad, out=wrapped[key][level])
-        sig = phase_sigma_rad(obj_phase, intensity_noise(obj_phase.mean, obj_phase.residual))
-        sig_ref = phase_sigma_rad(ref_phase, intensity_noise(ref_phase.mean, ref_phase.residual))
+        sig = phase_sigma_rad(obj_phase, _noise(obj_phase))
+        sig_ref = phase_sigma_rad(ref_phase, _noise(ref_phase))
         # Object and reference noise are independent: variances add in the difference.
         sig *= sig
         sig_ref *= sig_ref
@@ -122,6 +122,10 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress):
         f"{k[0]:g}": [float(p) for p, _, _ in levels] for k, levels in sets.items()
     }
     meas.used["fringe_sets"] = sum(len(v) for v in sets.values())
+
+
+def _noise(phase):
+    return intensity_noise(phase.mean, phase.residual, phase_rad=phase.phase_rad)
 
 
 def _rough_height(height_um):

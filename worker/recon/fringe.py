@@ -60,10 +60,14 @@ class IntensityNoise:
 
     read_var : float, variance at zero signal (read noise, quantisation), frame units².
     gain : float, variance per unit of mean level (shot noise), frame units.
+    harmonic : (float, float), the pattern's second harmonic seen in the 4-step residual,
+        r ≈ A·(c·cos 2ψ + s·sin 2ψ) (a projector's intensity non-linearity); (0, 0) when
+        not significant.  The 4-step phase is blind to it, so it is not noise.
     """
 
     read_var: float
     gain: float
+    harmonic: tuple[float, float] = (0.0, 0.0)
 
     def variance(self, mean: np.ndarray) -> np.ndarray:
         m = np.asarray(mean, dtype=np.float32)
@@ -131,7 +135,11 @@ def four_step_phase(frames: np.ndarray) -> FringePhase:
 
 
 def intensity_noise(
-    mean: np.ndarray, residual: np.ndarray, *, samples: int = 20_000
+    mean: np.ndarray,
+    residual: np.ndarray,
+    *,
+    phase_rad: np.ndarray | None = None,
+    samples: int = 20_000,
 ) -> IntensityNoise:
     """Fit the photon-transfer model σ_I² = read_var + gain·A to one set's 4-step residuals.
 
@@ -143,17 +151,33 @@ def intensity_noise(
     Theil–Sen line is fitted to the bins, both coefficients kept ≥ 0.  A regular
     grid of about ``samples`` pixels is used (the fit needs thousands, not millions).
 
-    mean, residual : (H, W) from :func:`four_step_phase`.
+    A pattern that is not a pure sinusoid (a projector's gamma) puts its second harmonic,
+    A·h₂·cos(2ψ + ·), into r although the 4-step phase ignores it; given ``phase_rad`` the
+    harmonic is fitted first (least squares on A·cos 2ψ, A·sin 2ψ) and removed when it
+    lowers the median r² by more than 10 %; it is returned in ``harmonic``.
+
+    mean, residual, phase_rad : (H, W) from :func:`four_step_phase`.
     """
     mean = np.asarray(mean, dtype=np.float32)
     stride = max(1, int(np.sqrt(mean.size / max(samples, 1))))
     a = mean[::stride, ::stride].ravel()
     r = np.asarray(residual, dtype=np.float32)[::stride, ::stride].ravel()
     ok = np.isfinite(a) & np.isfinite(r) & (a > 0)
-    a, r2 = a[ok].astype(np.float64), np.square(r[ok].astype(np.float64))
+    harmonic = (0.0, 0.0)
+    if phase_rad is not None:
+        psi = np.asarray(phase_rad, dtype=np.float32)[::stride, ::stride].ravel()
+        ok &= np.isfinite(psi)
+    a, r = a[ok].astype(np.float64), r[ok].astype(np.float64)
+    if phase_rad is not None and a.size >= 24:
+        x = np.stack([a * np.cos(2.0 * psi[ok]), a * np.sin(2.0 * psi[ok])], axis=1)
+        coef = np.linalg.lstsq(x, r, rcond=None)[0]
+        cleaned = r - x @ coef
+        if np.median(cleaned**2) < 0.9 * np.median(r**2):
+            r, harmonic = cleaned, (float(coef[0]), float(coef[1]))
+    r2 = np.square(r)
     if a.size < 24:
         var = float(np.median(r2) / 0.4549) if a.size else 0.0
-        return IntensityNoise(read_var=var, gain=0.0)
+        return IntensityNoise(read_var=var, gain=0.0, harmonic=harmonic)
     order = np.argsort(a)
     bins = np.array_split(order, 12)
     xa = np.array([np.median(a[b]) for b in bins])
@@ -169,7 +193,7 @@ def intensity_noise(
         gain, read_var = 0.0, float(np.median(yv))
     elif read_var < 0:
         gain, read_var = float(np.median(yv / xa)), 0.0
-    return IntensityNoise(read_var=float(read_var), gain=float(gain))
+    return IntensityNoise(read_var=float(read_var), gain=float(gain), harmonic=harmonic)
 
 
 def phase_sigma_rad(phase: FringePhase, noise: IntensityNoise, *, local_px: int = 5) -> np.ndarray:
@@ -178,9 +202,10 @@ def phase_sigma_rad(phase: FringePhase, noise: IntensityNoise, *, local_px: int 
     From ψ = atan2(I_270 − I_90, I_0 − I_180) with independent frame noise σ_I
     (:func:`four_step_phase`).  σ_I² is the larger of the set's photon-transfer model at the
     pixel's mean level and the local mean of the squared 4-step residual over
-    ``local_px`` × ``local_px`` pixels (0: model only): the local term catches what the model
-    misses (saturation, harmonics, dark pixels below the fit's range), so it only ever makes
-    a phase less trusted.  inf where B = 0, NaN where the frames are.  A shadowed pixel has
+    ``local_px`` × ``local_px`` pixels (0: model only), less the second harmonic
+    ``noise.harmonic``: the local term catches what the model misses (saturation, dark
+    pixels below the fit's range, interreflections), so it only ever makes a phase less
+    trusted.  inf where B = 0, NaN where the frames are.  A shadowed pixel has
     B ≈ σ_I (noise only), hence σ_ψ ≈ 0.7 rad or more: such phases never fix an order.
     """
     if phase.mean is None or phase.residual is None:
@@ -189,7 +214,16 @@ def phase_sigma_rad(phase: FringePhase, noise: IntensityNoise, *, local_px: int 
     var *= np.float32(noise.gain)
     var += np.float32(noise.read_var)
     if local_px > 1:
-        r2 = np.square(phase.residual)
+        if noise.harmonic != (0.0, 0.0):
+            # The pattern's second harmonic is no noise (the 4-step phase ignores it).
+            c2, s2 = noise.harmonic
+            two_psi = 2.0 * phase.phase_rad
+            fit = np.cos(two_psi) * np.float32(c2)
+            fit += np.sin(two_psi) * np.float32(s2)
+            fit *= phase.mean
+            r2 = np.square(phase.residual - fit)
+        else:
+            r2 = np.square(phase.residual)
         local = cv2.blur(r2, (local_px, local_px), dst=r2, borderType=cv2.BORDER_REFLECT)
         # fmax: a NaN neighbourhood (undecodable pixels) falls back on the model.
         np.fmax(var, local, out=var)
