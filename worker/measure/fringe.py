@@ -59,6 +59,8 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress):
             groups.append([*frames, *refs])
             index.append((key, level))
     heights, sigmas, mods, ambient = [], [], [], []
+    summary: dict = {}
+    harmonic_sets = 0
     wrapped: dict = {}
     noise: dict = {}
     total = len(groups)
@@ -72,8 +74,10 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress):
             noise[key] = np.empty(shape, np.float32)
         # Object − reference, left in (−2π, 2π): noise_aware_unwrap wraps where it matters.
         np.subtract(obj_phase.phase_rad, ref_phase.phase_rad, out=wrapped[key][level])
-        sig = phase_sigma_rad(obj_phase, _noise(obj_phase))
-        sig_ref = phase_sigma_rad(ref_phase, _noise(ref_phase))
+        obj_noise, ref_noise = _noise(obj_phase), _noise(ref_phase)
+        harmonic_sets += obj_noise.harmonic != (0.0, 0.0) or ref_noise.harmonic != (0.0, 0.0)
+        sig = phase_sigma_rad(obj_phase, obj_noise)
+        sig_ref = phase_sigma_rad(ref_phase, ref_noise)
         # Object and reference noise are independent: variances add in the difference.
         sig *= sig
         sig_ref *= sig_ref
@@ -101,6 +105,7 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress):
             # it only if its phase could fix the finest period's order (σ ≤ π/z, z of the
             # unwrapping's ambiguity test).
             ok = np.isfinite(h) & (un.conflicts <= 1) & (un.sigma_rad * _Z <= np.pi)
+            summary[f"{key[0]:g}"] = _unwrap_summary(un, ok, periods)
             heights.append(np.where(ok, h, np.nan).astype(np.float32))
             sigmas.append(np.where(ok, sigma_h, np.nan).astype(np.float32))
             m = obj_phase.modulation
@@ -122,6 +127,20 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress):
         f"{k[0]:g}": [float(p) for p, _, _ in levels] for k, levels in sets.items()
     }
     meas.used["fringe_sets"] = sum(len(v) for v in sets.values())
+    meas.used["fringe_unwrap"] = {"azimuths": summary, "sets_with_harmonic": int(harmonic_sets)}
+
+
+def _unwrap_summary(un, ok, periods) -> dict:
+    """What the unwrapping of one azimuth did, for the report (fractions of the pixels whose
+    coarsest fringe was seen, i.e. lit at that azimuth)."""
+    lit = un.level_used >= 0
+    n = max(int(lit.sum()), 1)
+    lev = un.level_used[ok]
+    return {
+        "kept": round(float(ok.sum()) / n, 4),
+        "conflicts": round(float((lit & (un.conflicts > 1)).sum()) / n, 4),
+        "finest_period_um_median": float(periods[int(np.median(lev))]) if lev.size else None,
+    }
 
 
 def _noise(phase):

@@ -54,3 +54,6 @@ def test_fringe_heights_have_no_gross_errors(tmp_path, noise):
     rms, mae = float(np.sqrt(np.mean(err**2))), float(np.mean(np.abs(err)))
     assert rms < 3.0 * mae, (rms, mae)
     assert meas.azimuths_used[fin].min() >= 1
+    # The report's summary: every azimuth keeps most of its lit pixels.
+    summary = meas.used["fringe_unwrap"]["azimuths"]
+    assert len(summary) == 4 and all(a["kept"] > 0.8 for a in summary.values())
