@@ -122,13 +122,21 @@ def icp(
     return IcpResult(np.array(t), float(ev.fitness), float(ev.inlier_rmse))
 
 
-def _start_rotations(angle_deg: float) -> list[np.ndarray]:
-    """Identity, then rotations by ``angle_deg`` about the 6 signed axes and 8 diagonals."""
+def _start_rotations(angle_deg: float, dense: bool = False) -> list[np.ndarray]:
+    """Identity, then rotations by ``angle_deg`` about the 6 signed axes and 8 diagonals
+    (``dense``: also the 12 face diagonals, so that no axis is more than ~20° from one)."""
     axes = [np.array(a, float) for a in np.eye(3)]
     axes += [-a for a in axes]
     axes += [
         np.array([sx, sy, sz]) / np.sqrt(3) for sx in (1, -1) for sy in (1, -1) for sz in (1, -1)
     ]
+    if dense:
+        for i, j in ((0, 1), (0, 2), (1, 2)):
+            for si in (1, -1):
+                for sj in (1, -1):
+                    a = np.zeros(3)
+                    a[i], a[j] = si, sj
+                    axes.append(a / np.sqrt(2))
     out = [np.eye(3)]
     out += [Rotation.from_rotvec(np.radians(angle_deg) * a).as_matrix() for a in axes]
     return out
@@ -143,12 +151,16 @@ def multi_start_icp(
     search_voxel_mm: float,
     angle_deg: float = 20.0,
     min_gain: float = 0.03,
+    score=None,
+    dense: bool = False,
 ) -> tuple[IcpResult, int]:
     """ICP from each of ``inits`` and from each init turned by ``angle_deg`` about 14 axes
     through the source's centroid, searched on clouds thinned to ``search_voxel_mm`` with the
     distances but the last; the start with the largest overlap (fitness), which must beat the
     first init's by ``min_gain`` to replace it (a correct pose should stay), is then refined
-    at full density with the last distance.
+    at full density with the last distance. ``score`` (transform → float, larger is better)
+    replaces the fitness as the measure of a start when given; ``dense`` adds the 12 face
+    diagonals to the axes.
 
     Returns the refined result and the index of the winning init.
     """
@@ -156,17 +168,18 @@ def multi_start_icp(
     tgt = target.voxel_down_sample(search_voxel_mm)
     centroid = np.asarray(src.points).mean(axis=0)
     first: IcpResult | None = None
-    best: tuple[IcpResult, int] | None = None
+    best: tuple[IcpResult, int, float] | None = None
     for k, init in enumerate(inits):
         c = transform_points(init, centroid[None])[0]
-        for r in _start_rotations(angle_deg):
+        for r in _start_rotations(angle_deg, dense):
             start = rigid(r, c - r @ c) @ init
             res = icp(src, tgt, start, distances_mm=distances_mm[:-1], max_iterations=15)
+            value = res.fitness if score is None else float(score(res.transform))
             if first is None:
                 first = res
-                best = (res, k)
-            elif res.fitness > best[0].fitness + (min_gain if best[0] is first else 0.0):
-                best = (res, k)
+                best = (res, k, value)
+            elif value > best[2] + (min_gain if best[0] is first else 0.0):
+                best = (res, k, value)
     assert best is not None
     refined = icp(source, target, best[0].transform, distances_mm=distances_mm[-1:])
     return refined, best[1]

@@ -30,7 +30,7 @@ from scipy.spatial.transform import Rotation
 from worker.register.o3d import rigid
 from worker.register.pointcloud import ScanCloud
 
-__all__ = ["joint_refine", "projective_pairs"]
+__all__ = ["joint_refine", "projective_pairs", "silhouette_consistency"]
 
 
 def _bilinear(grid_values: np.ndarray, valid: np.ndarray, rows: np.ndarray, cols: np.ndarray):
@@ -75,6 +75,13 @@ def projective_pairs(
     valid samples around the projection, ``a``'s normal faces ``b``'s camera within
     ``max_tilt_deg``, the two normals agree within ``max_normal_angle_deg`` and the distance
     along ``b``'s normal is under ``gate_mm``."""
+    x, y, m, ca, cb, _ = _projective(
+        a, b, t_a, t_b, gate_mm, max_tilt_deg, max_normal_angle_deg, stride
+    )
+    return x, y, m, ca, cb
+
+
+def _projective(a, b, t_a, t_b, gate_mm, max_tilt_deg, max_normal_angle_deg, stride=1):
     if b.grid is None:
         raise ValueError(f"{b.label}: no height map (grid) to project onto")
     p = a.points_mm[::stride]
@@ -95,12 +102,44 @@ def projective_pairs(
     dist = np.einsum("ij,ij->i", q - y, n_b)
     agree = np.einsum("ij,ij->i", nq, n_b) > np.cos(np.radians(max_normal_angle_deg))
     keep = agree & (np.abs(dist) < gate_mm)
-    q, y, n_b, na, nq = q[keep], y[keep], n_b[keep], na[keep], nq[keep]
+    q, y, n_b, na, nq, dist = q[keep], y[keep], n_b[keep], na[keep], nq[keep], dist[keep]
     rb = t_b[:3, :3]
     x_t = q @ rb.T + t_b[:3, 3]
     y_t = y @ rb.T + t_b[:3, 3]
     m_t = n_b @ rb.T
-    return x_t, y_t, m_t, np.abs(na[:, 2]), np.abs(n_b[:, 2])
+    return x_t, y_t, m_t, np.abs(na[:, 2]), np.abs(n_b[:, 2]), dist
+
+
+def silhouette_consistency(
+    scans: list[ScanCloud], transforms: list, k: int, *, tolerance_px: float, stride: int = 4
+) -> float:
+    """Of the points of the other placed scans (``transforms``; None = not placed) that
+    project inside scan ``k``'s image, and of ``k``'s points inside each other scan's image,
+    the fraction that falls within ``tolerance_px`` of that image's tablet mask.
+
+    Every view is orthographic and sees the whole tablet's outline, so every surface point
+    of the tablet lies inside every view's silhouette (the visual hull; silhouette
+    coherence, Hernández, Schmitt & Cipolla 2007). A pose that slides a rounded edge scan
+    around the tablet, which point-to-surface distances hardly notice, swings that view's
+    silhouette across the others' points. 1.0 for a consistent pose."""
+    inside = total = 0
+    for j, t in enumerate(transforms):
+        if j == k or t is None:
+            continue
+        for a, b, ta, tb in ((j, k, t, transforms[k]), (k, j, transforms[k], t)):
+            grid = scans[b].grid
+            if grid is None or grid.outside_px is None:
+                continue
+            rel = np.linalg.inv(tb) @ ta
+            q = scans[a].points_mm[::stride] @ rel[:3, :3].T + rel[:3, 3]
+            s_mm = scans[b].pixel_size_um / 1000.0
+            r = np.rint(q[:, 1] / s_mm).astype(np.int64)
+            c = np.rint(q[:, 0] / s_mm).astype(np.int64)
+            h, w = grid.outside_px.shape
+            seen = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+            total += int(seen.sum())
+            inside += int(np.sum(grid.outside_px[r[seen], c[seen]] <= tolerance_px))
+    return inside / total if total else 1.0
 
 
 def _tukey(r: np.ndarray, c: float) -> np.ndarray:

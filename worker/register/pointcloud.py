@@ -43,11 +43,13 @@ class ScanCloud:
 class ScanGrid:
     """The scan's height map as a surface that can be sampled anywhere (projective
     correspondences, :mod:`worker.register.joint`): height_um (H, W), normals (H, W, 3) and
-    ``valid`` (H, W) bool, the pixels kept as points (finite, eroded mask, not too steep)."""
+    ``valid`` (H, W) bool, the pixels kept as points (finite, eroded mask, not too steep);
+    outside_px (H, W): each pixel's distance (pixels) to the mask, 0 on it (the silhouette)."""
 
     height_um: np.ndarray
     normals: np.ndarray
     valid: np.ndarray
+    outside_px: np.ndarray | None = None
 
 
 def scan_cloud(
@@ -107,7 +109,12 @@ def scan_cloud(
             raise ValueError(f"albedo must have shape {h.shape}[+3], got {a.shape}")
         a = a[rows, cols]
         colours = (np.repeat(a[:, None], 3, 1) if a.ndim == 1 else a[:, :3]) / 255.0
-    grid = ScanGrid(np.where(keep, h, np.nan), np.where(keep[..., None], n, np.nan), keep)
+    grid = ScanGrid(
+        np.where(keep, h, np.nan),
+        np.where(keep[..., None], n, np.nan),
+        keep,
+        ndimage.distance_transform_edt(~m).astype(np.float32),
+    )
     return ScanCloud(
         points, nn, colours.astype(np.float64), float(pixel_size_um), label, face, pose, grid
     )

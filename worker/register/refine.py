@@ -23,7 +23,7 @@ from worker.register.align import (
     multi_start_icp,
     object_diameter_mm,
 )
-from worker.register.joint import joint_refine
+from worker.register.joint import joint_refine, silhouette_consistency
 from worker.register.o3d import o3d, point_cloud, rigid, transform_points
 from worker.register.pointcloud import ScanCloud
 
@@ -137,35 +137,91 @@ def _placed_points(scans, transforms) -> np.ndarray | None:
     return np.concatenate(pts) if pts else None
 
 
-def _leave_one_out(scans, transforms, distances, voxel, labels_moved) -> list[np.ndarray]:
+def _leave_one_out(
+    scans, transforms, distances, voxel, labels_moved, tolerance_px=None
+) -> list[np.ndarray]:
     """Each scan against all the others, coarse to fine from its current transform; then a
-    scan that fits far worse than the rest (overlap under half the median: a recorded pose
-    tens of degrees wrong) is searched again from starts turned about 14 axes, and moved only
-    when the best start overlaps the others half as much again: on reconstructed scans the
-    overlap at 0.7 pixel is a noisy measure, and a turned start that merely edges it out is a
-    wrong pose (measured: the obverse or reverse moved by 1–3° on the simulator's
-    reconstructions)."""
+    scan that fits far worse than the rest (a recorded pose tens of degrees wrong) is
+    searched again from starts turned about 14 axes.
+
+    With height maps (``tolerance_px`` given) "fits" is silhouette consistency
+    (:func:`silhouette_consistency`): an ICP move that lowers it is refused (a rounded edge
+    is nearly a cylinder, and ICP can slide a scan around it: measured 40–60° on the
+    simulator when a neighbour's pose was 20° wrong), a scan below 0.95 is searched (worst
+    first, recomputed after each move) and a turned start replaces its pose when it is more
+    consistent. Bare point clouds: overlap under half the median, and a turned start must
+    overlap half as much again (on reconstructed scans the overlap at 0.7 pixel is a noisy
+    measure, and a large face overlaps its neighbours only at its rim)."""
     out = list(transforms)
+
+    def consistency(k, t):
+        return silhouette_consistency(
+            scans, [*out[:k], t, *out[k + 1 :]], k, tolerance_px=tolerance_px
+        )
+
+    def recentred(k, t):
+        """``t``'s rotation, translated so that the scan's extent meets the others' (the
+        support function, :func:`centring_transform`): a neighbour's wrong pose can put
+        the first placement millimetres off, beyond ICP's reach."""
+        others = [u if i != k else None for i, u in enumerate(out)]
+        return centring_transform(scans[k], t[:3, :3], placed_mm=_placed_points(scans, others))
+
     fitness = []
     for k in range(len(scans)):
         src = cloud_of(scans[k]).voxel_down_sample(voxel)
         target = _union(scans, out, k, voxel)
         res = icp(src, target, out[k], distances_mm=distances, max_iterations=20)
-        out[k] = res.transform
+        if tolerance_px is not None:
+            # ICP can slide an edge scan around the tablet's rounded rim: the silhouettes
+            # choose between ICP's moves and the support-function placement itself.
+            moved = recentred(k, out[k])
+            alt = icp(src, target, moved, distances_mm=distances, max_iterations=20)
+            cands = [out[k], res.transform, moved, alt.transform]
+            out[k] = max(cands, key=lambda t: consistency(k, t))
+        else:
+            out[k] = res.transform
         fitness.append(res.fitness)
-    median = float(np.median(fitness))
-    for k in np.argsort(fitness):
-        if fitness[k] >= 0.5 * median:
-            break
+    if tolerance_px is None:
+        median = float(np.median(fitness))
+        for k in np.argsort(fitness):
+            if fitness[k] >= 0.5 * median:
+                break
+            src = cloud_of(scans[k]).voxel_down_sample(voxel)
+            target = _union(scans, out, k, voxel)
+            res, _ = multi_start_icp(
+                src,
+                target,
+                [out[k]],
+                distances_mm=distances,
+                search_voxel_mm=2 * voxel,
+                min_gain=0.0,
+            )
+            if res.fitness > 1.5 * fitness[k]:
+                labels_moved.append(scans[k].label)
+                out[k] = res.transform
+        return out
+    tried: set[int] = set()
+    while True:
+        values = {k: consistency(k, out[k]) for k in range(len(scans)) if k not in tried}
+        k = min(values, key=values.get) if values else None
+        if k is None or values[k] >= 0.95:
+            return out
+        tried.add(k)
         src = cloud_of(scans[k]).voxel_down_sample(voxel)
         target = _union(scans, out, k, voxel)
         res, _ = multi_start_icp(
-            src, target, [out[k]], distances_mm=distances, search_voxel_mm=2 * voxel, min_gain=0.0
+            src,
+            target,
+            [out[k], recentred(k, out[k])],
+            distances_mm=distances,
+            search_voxel_mm=2 * voxel,
+            min_gain=0.0,
+            score=lambda t, k=k: consistency(k, t),
+            dense=True,
         )
-        if res.fitness > 1.5 * fitness[k]:
+        if consistency(k, res.transform) > values[k]:
             labels_moved.append(scans[k].label)
             out[k] = res.transform
-    return out
 
 
 def _polish(scans, clouds, transforms, distance_mm, rounds) -> list[np.ndarray]:
@@ -275,8 +331,10 @@ def register_scans(
         loo, loo_voxel = (diameter / 25.0, 4.0 * voxel, 2.0 * voxel), voxel
     else:
         loo, loo_voxel = (diameter / 25.0, 4.0 * pixel_mm, 2.0 * pixel_mm, fine_mm), pixel_mm
+    # Silhouettes are compared to within the coarse stage's accuracy, a few sample spacings.
+    tolerance_px = 4.0 * voxel / pixel_mm if grids else None
     for _ in range(loo_rounds):
-        transforms = _leave_one_out(scans, transforms, loo, loo_voxel, restarted)
+        transforms = _leave_one_out(scans, transforms, loo, loo_voxel, restarted, tolerance_px)
     clouds = [cloud_of(s) for s in scans]
     anchor = next((i for i, how in enumerate(init) if how in ("anchor", "pose")), 0)
     if "pose" not in init:  # no pose at all: the obverse (else the first) scan is the anchor
