@@ -113,8 +113,8 @@ def _projective(a, b, t_a, t_b, gate_mm, max_tilt_deg, max_normal_angle_deg, str
 def silhouette_consistency(
     scans: list[ScanCloud], transforms: list, k: int, *, tolerance_px: float, stride: int = 4
 ) -> float:
-    """Of the points of the other placed scans (``transforms``; None = not placed) that
-    project inside scan ``k``'s image, and of ``k``'s points inside each other scan's image,
+    """Of the points of the other placed scans (``transforms``; None = not placed) projected
+    into scan ``k``'s image, and of ``k``'s points projected into each other scan's image,
     the fraction that falls within ``tolerance_px`` of that image's tablet mask.
 
     Every view is orthographic and sees the whole tablet's outline, so every surface point
@@ -136,9 +136,11 @@ def silhouette_consistency(
             r = np.rint(q[:, 1] / s_mm).astype(np.int64)
             c = np.rint(q[:, 0] / s_mm).astype(np.int64)
             h, w = grid.outside_px.shape
-            seen = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-            total += int(seen.sum())
-            inside += int(np.sum(grid.outside_px[r[seen], c[seen]] <= tolerance_px))
+            # Beyond the image's border: as the border pixel there, so that a tablet cut by
+            # the frame is not held against the scan, and a scan thrown far off counts.
+            d = grid.outside_px[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)]
+            total += len(d)
+            inside += int(np.sum(d <= tolerance_px))
     return inside / total if total else 1.0
 
 
@@ -168,6 +170,11 @@ def joint_refine(
     free = [k for k in range(n) if k != anchor]
     col = {k: 6 * i for i, k in enumerate(free)}
     stats: dict[tuple[str, str], tuple[int, float]] = {}
+    # farthest point of each scan from the tablet frame's origin (the lever of a rotation)
+    radius = {
+        k: float(np.linalg.norm(s.points_mm @ out[k][:3, :3].T + out[k][:3, 3], axis=1).max())
+        for k, s in enumerate(scans)
+    }
     for gate in gates_mm:
         for _ in range(iterations):
             pairs = []
@@ -211,6 +218,15 @@ def joint_refine(
             # (a scan without overlap); the robust weights do the rest.
             damp = 1e-6 * np.trace(h) / len(h) + 1e-12
             delta = -np.linalg.solve(h + damp * np.eye(len(h)), g)
+            # No scan's points may move farther than the gate in one step: beyond it the
+            # linearisation and the correspondences no longer hold.
+            reach = max(
+                float(np.linalg.norm(delta[c + 3 : c + 6]))
+                + float(np.linalg.norm(delta[c : c + 3])) * radius[k]
+                for k, c in col.items()
+            )
+            if reach > gate:
+                delta *= gate / reach
             for k, c in col.items():
                 rot = Rotation.from_rotvec(delta[c : c + 3]).as_matrix()
                 out[k] = rigid(rot, delta[c + 3 : c + 6]) @ out[k]
