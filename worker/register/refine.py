@@ -166,8 +166,11 @@ def _leave_one_out(
         others = [u if i != k else None for i, u in enumerate(out)]
         return centring_transform(scans[k], t[:3, :3], placed_mm=_placed_points(scans, others))
 
-    fitness = []
-    for k in range(len(scans)):
+    fitness = [0.0] * len(scans)
+    order = list(range(len(scans)))
+    if tolerance_px is not None:  # the least consistent first, before it misleads the others
+        order.sort(key=lambda k: consistency(k, out[k]))
+    for k in order:
         src = cloud_of(scans[k]).voxel_down_sample(voxel)
         target = _union(scans, out, k, voxel)
         res = icp(src, target, out[k], distances_mm=distances, max_iterations=20)
@@ -180,7 +183,7 @@ def _leave_one_out(
             out[k] = max(cands, key=lambda t: consistency(k, t))
         else:
             out[k] = res.transform
-        fitness.append(res.fitness)
+        fitness[k] = res.fitness
     if tolerance_px is None:
         median = float(np.median(fitness))
         for k in np.argsort(fitness):
