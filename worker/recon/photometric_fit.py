@@ -20,8 +20,10 @@ __all__ = [
     "robust_fit",
 ]
 
-# Half-angle cones (between normal and half vector) of the mirror-exclusion hypotheses.
+# Half-angle cones (between normal and half vector) of the mirror-exclusion hypotheses; the
+# wide one only with dense light sets (see _hypotheses).
 _MIRROR_CONES_DEG = (15.0, 30.0)
+_DENSE_LIGHTS = 32
 
 
 def _solve_sym3(m6: np.ndarray, rhs: np.ndarray, min_condition: float):
@@ -279,7 +281,11 @@ def _hypotheses(model, cand, delta):
         # where a lobe spreads over whole rings of lights no rank-based start escapes it.
         n_low = b_low / np.maximum(np.linalg.norm(b_low, axis=1, keepdims=True), 1e-30)
         cos_h = model.half32 @ n_low.astype(np.float32).T
-        for cone_deg in _MIRROR_CONES_DEG:
+        # With few lights a 30° cone takes a large share of the bright ones away, and an
+        # additive term common to all lights (stray light, interreflections) then flattens
+        # the fit: on the simulated hard scan (16 lights) wedge walls by 0.1° on average.
+        cones = _MIRROR_CONES_DEG if k >= _DENSE_LIGHTS else _MIRROR_CONES_DEG[:1]
+        for cone_deg in cones:
             yield _fit(
                 s,
                 cand & (cos_h < np.float32(np.cos(np.radians(cone_deg)))),
@@ -491,8 +497,11 @@ def cone_resolve(model, cand, inl, b, ok, sigma, *, cone_deg=20.0, k_sigma=1.5):
     highlight until its residual says little (leverage near 1; with three it is zero) and
     its normal may be off by degrees: there the cone is 10° wider and every sample in it is
     a suspect.  The 20° cone is where a Blinn–Phong lobe of exponent 40 still exceeds 8 % of
-    its peak.  Broader lobes (Torrance–Sparrow, rough glaze) reach further: the caller runs
-    a second, wider cone whose evidence is only the inliers of the band between the two.
+    its peak.  Broader lobes (Torrance–Sparrow, rough glaze) reach further, but a wider
+    cone also takes more of the bright lights away, and an additive term common to all
+    lights (stray light, interreflections) then flattens the normal: on the simulated hard
+    scan (16 lights, stray light 1 %) a second pass at 30° flattened wedge walls by 0.9° on
+    average (fused wedge depth error 3.4 → 5.8 µm), so there is none.
     """
     if not sigma > 0 or model.half32 is None:
         return inl, b
