@@ -24,6 +24,11 @@ heights off the surface, and edges whose solved step disagrees with their target
 where the normals show a break, `_bent_edges`: on smooth ground an island of bad fringe
 heights must not cut itself loose) — and the problem is solved again, warm-started.
 
+The weights' scale comes from predicted noise (photometric residual, fringe phase noise),
+which can be wrong by a large factor (a light calibration bias leaves a small residual): after
+the first solve one round of variance component estimation (`variance_factors`, Förstner
+1979) rescales each class of slope and height terms by what its residuals say.
+
 Edge targets use the four-point cell average of the slopes where it stands out of the noise
 (`cell_average_targets_um`). `sharpen_heights` undoes a measured camera blur afterwards.
 """
@@ -40,7 +45,7 @@ from worker.recon.integrate import (
     solve_screened_poisson,
 )
 
-__all__ = ["cell_average_targets_um", "fuse_default", "sharpen_heights"]
+__all__ = ["cell_average_targets_um", "fuse_default", "sharpen_heights", "variance_factors"]
 
 
 def fuse_default(
@@ -53,6 +58,8 @@ def fuse_default(
     height_sigma_um: np.ndarray | float,
     outlier_sigmas: float = 4.0,
     robust_passes: int = 1,
+    variance_components: bool = True,
+    variance_classes: int = 8,
     rtol: float = 2e-5,
 ) -> np.ndarray:
     """Fuse normals and fringe heights into one height map.
@@ -111,6 +118,7 @@ def fuse_default(
     with np.errstate(divide="ignore"):
         lam = np.where(has_f, 1.0 / np.square(sig_f[crop]), 0).astype(np.float32)
 
+    cut_x = cut_y = None
     if has_f.any() and outlier_sigmas > 0:
         cut_x, cut_y = _bent_edges(gx, gy, step_sigma, s, k=outlier_sigmas)
         wx, wy = _cut_discontinuities(
@@ -126,6 +134,20 @@ def fuse_default(
         tx, ty, wx, wy, data_um=f_c, data_weight=lam, x0_um=x0, rtol=first_rtol
     )
     h = sol.height_um
+    if variance_components and has_f.any():
+        # One round of variance component estimation on the pilot solve: dividing each
+        # class's weights by its factor balances the groups as the data say, and the
+        # robust thresholds below become those of the estimated noise.
+        fx, fy, ff = variance_factors(
+            h, f_c, lam, wx, wy, tx, ty, cut_x=cut_x, cut_y=cut_y, classes=variance_classes
+        )
+        wx, wy, lam = wx / fx, wy / fy, lam / ff
+        sig_f = np.array(sig_f, np.float32)
+        sig_f[crop] *= np.sqrt(ff)
+        if not robust_pass:
+            h = solve_screened_poisson(
+                tx, ty, wx, wy, data_um=f_c, data_weight=lam, x0_um=h, rtol=rtol
+            ).height_um
     if robust_pass:
         k = np.float32(outlier_sigmas)
         for _ in range(robust_passes):
@@ -150,6 +172,106 @@ def fuse_default(
     h = _zero_mean_where_no_data(h, m_c, has_f)
     out[crop] = np.where(m_c, h, np.nan)
     return out
+
+
+def variance_factors(h, f, lam, wx, wy, tx, ty, *, cut_x=None, cut_y=None, classes=8):
+    """Variance factors of the slope and height terms, per class of predicted noise.
+
+    Variance component estimation (Helmert 1924; Förstner 1979; Koch 1999 §3.6): if the
+    weights w = 1/σ² of a group of observations are right up to one factor, a residual r
+    of weight w has E[w·r²] = σ̂²·(1 − ℓ), ℓ its leverage (diagonal of the hat matrix),
+    so σ̂² = Σ w r² / Σ(1 − ℓ) (the group's redundancy). Here σ̂² is the square of the
+    normalised MAD of u = r·√(w/(1 − ℓ)), so that cliffs and unwrapping errors (the robust
+    pass's business) do not inflate it. Each group is split into `classes` quantile classes
+    of its weights, each with its own factor: where the predicted noise (photometric
+    residual, azimuths used, crease term) ranks the observations wrongly, the classes even
+    it out. The leverage of a height term is that of a pixel of a homogeneous lattice with
+    the pixel's edge stiffness w_p (a quarter of its edges' summed weights) and data weight
+    λ_p: ℓ_p = m·G(m), m = λ_p/w_p, G the diagonal of (m + L)⁻¹ for the 5-point Laplacian
+    on the infinite grid (`_lattice_green_diag`); the slope terms share the rest of the
+    trace, n_pixels − Σℓ_p, evenly. Edges that may be cut (`cut_x`, `cut_y`) are left out
+    of the estimate (they take their class's factor).
+
+    h: solved (H, W) µm; f, lam: fringe heights and their weights; wx, wy, tx, ty: slope
+    terms as in `fuse_default`. Returns (fx, fy, ff): factors shaped like wx, wy, lam
+    (1 where a class has fewer than 25 residuals); dividing the weights by them makes them
+    honest.
+    """
+    has = lam > 0
+    stiff = np.zeros_like(lam)
+    stiff[:, 1:] += wx
+    stiff[:, :-1] += wx
+    stiff[1:, :] += wy
+    stiff[:-1, :] += wy
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m = lam / (stiff / 4)
+    lev_p = np.where(has, np.where(stiff > 0, _hat_diag(m), 1), 0).astype(np.float32)
+    n_edges = int(np.count_nonzero(wx) + np.count_nonzero(wy))
+    n_active = int(np.count_nonzero(has | (stiff > 0)))
+    lev_e = float(np.clip((n_active - lev_p.sum()) / max(n_edges, 1), 0, 0.99))
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uf = (h - f) * np.sqrt(lam / np.maximum(1 - lev_p, 1e-2))
+        ux = (h[:, 1:] - h[:, :-1] - tx) * np.sqrt(wx / (1 - lev_e))
+        uy = (h[1:, :] - h[:-1, :] - ty) * np.sqrt(wy / (1 - lev_e))
+    keep_x = wx > 0 if cut_x is None else (wx > 0) & ~cut_x
+    keep_y = wy > 0 if cut_y is None else (wy > 0) & ~cut_y
+    edge_factor = _class_factors(
+        np.concatenate([wx[keep_x], wy[keep_y]]), np.concatenate([ux[keep_x], uy[keep_y]]), classes
+    )
+    height_factor = _class_factors(lam[has], uf[has], classes)
+    ff = np.where(has, height_factor(lam), np.float32(1))
+    return edge_factor(wx), edge_factor(wy), ff
+
+
+def _class_factors(weights, u, classes, max_factor=1e4):
+    """A function weight → (normalised MAD of u)² of that weight's quantile class."""
+    ok = np.isfinite(u)
+    weights, u = weights[ok], u[ok]
+    step = max(1, u.size // 300_000)  # 300k residuals fix a MAD to < 0.5 %
+    weights, u = weights[::step], u[::step]
+    classes = max(1, min(classes, u.size // 25))
+    if u.size < 25:
+        return lambda w: np.ones(np.shape(w), np.float32)
+    bounds = np.quantile(weights, np.linspace(0, 1, classes + 1)[1:-1])
+    cls = np.searchsorted(bounds, weights)
+    # Classes that tied weights leave (nearly) empty take the pooled value.
+    pooled = float(np.median(np.abs(u)))
+    counts = np.bincount(cls, minlength=classes)
+    mad = np.array(
+        [np.median(np.abs(u[cls == i])) if counts[i] >= 25 else pooled for i in range(classes)]
+    )
+    fac = np.clip(np.square(1.4826 * mad), 1 / max_factor, max_factor).astype(np.float32)
+    return lambda w: fac[np.searchsorted(bounds, w)]
+
+
+def _lattice_green_diag(m):
+    """G(m) = (1/4π²)∬ dk/(m + 4sin²(k_x/2) + 4sin²(k_y/2)) over [−π, π]², m > 0.
+
+    The k_y integral is exact, (1/2π)∫dk/(a + 4sin²(k/2)) = 1/√(a(a+4)); the k_x one is a
+    midpoint rule on a table of m, interpolated in log m (G ~ ln(32/m)/4π for small m,
+    ~1/m for large m).
+    """
+    m = np.asarray(m, np.float64)
+    table_m, table_g = _GREEN_TABLE
+    lm = np.log(np.clip(m, table_m[0], table_m[-1]))
+    return np.exp(np.interp(lm, np.log(table_m), np.log(table_g)))
+
+
+def _green_table():
+    ms = np.logspace(-9, 6, 121)
+    k = (np.arange(8192) + 0.5) * (np.pi / 8192)
+    a = ms[:, None] + 4 * np.square(np.sin(k / 2))[None, :]
+    g = np.mean(1 / np.sqrt(a * (a + 4)), axis=1)
+    return ms, g
+
+
+_GREEN_TABLE = _green_table()
+
+
+def _hat_diag(m):
+    """Leverage m·G(m) of a height term on the homogeneous lattice (in [0, 1])."""
+    return np.clip(m * _lattice_green_diag(m), 0, 1)
 
 
 def cell_average_targets_um(
@@ -232,12 +354,8 @@ def _cut_discontinuities(f, sig_f, has_f, wx, wy, tx, ty, cut_x, cut_y, *, k):
     (the crease model error is in σ_f); beyond k·σ_r its weight falls as (k·σ_r/r)². Only
     edges where the normals show a break (`_bent_edges`) are tested.
     """
-    from scipy import ndimage
-
     filled = np.where(has_f, f, np.float32(0))
-    med = ndimage.median_filter(filled, size=3, mode="nearest")
-    with np.errstate(invalid="ignore"):
-        trusted = has_f & (np.abs(f - med) <= k * sig_f)
+    trusted = _step_consistent(filled, sig_f, has_f, wx, wy, tx, ty, k=k)
     var_f = np.where(trusted, np.square(sig_f), np.inf).astype(np.float32)
 
     def cut(w, t, fa, fb, va, vb, allowed):
@@ -251,6 +369,31 @@ def _cut_discontinuities(f, sig_f, has_f, wx, wy, tx, ty, cut_x, cut_y, *, k):
     wx = cut(wx, tx, filled[:, :-1], filled[:, 1:], var_f[:, :-1], var_f[:, 1:], cut_x)
     wy = cut(wy, ty, filled[:-1, :], filled[1:, :], var_f[:-1, :], var_f[1:, :], cut_y)
     return wx, wy
+
+
+def _step_consistent(f, sig_f, has_f, wx, wy, tx, ty, *, k):
+    """Fringe heights that agree with at least two of their four neighbours through the slopes.
+
+    f_p is consistent with neighbour q when |f_q − f_p − t_pq| ≤ k·σ (σ² = σ_f,p² + σ_f,q² +
+    1/w_pq). An isolated unwrapping error or spike agrees with none (a two-pixel one with at
+    most one); a pixel on either side of a cliff, straight or staircase-diagonal, agrees with
+    the two or more neighbours on its own side — on sloped ground too, where a 3×3 median of
+    the raw heights would reject the pixels at the foot of the cliff.
+    """
+    var = np.where(has_f, np.square(sig_f), np.inf).astype(np.float32)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inv_wx = np.where(wx > 0, 1.0 / wx, np.inf)
+        inv_wy = np.where(wy > 0, 1.0 / wy, np.inf)
+        okx = np.square(f[:, 1:] - f[:, :-1] - tx) <= k * k * (var[:, 1:] + var[:, :-1] + inv_wx)
+        oky = np.square(f[1:, :] - f[:-1, :] - ty) <= k * k * (var[1:, :] + var[:-1, :] + inv_wy)
+    okx &= np.isfinite(var[:, 1:]) & np.isfinite(var[:, :-1])
+    oky &= np.isfinite(var[1:, :]) & np.isfinite(var[:-1, :])
+    votes = np.zeros(f.shape, np.int8)
+    votes[:, 1:] += okx
+    votes[:, :-1] += okx
+    votes[1:, :] += oky
+    votes[:-1, :] += oky
+    return has_f & (votes >= 2)
 
 
 def _zero_mean_where_no_data(h, mask, has_data):

@@ -318,3 +318,106 @@ def test_a_cliff_that_the_normals_cannot_express_is_kept_from_the_fringes():
     away = mask & (np.abs(np.arange(h.shape[1]) - wall + 0.5) > 3)[None, :]
     err = (got - h)[away]
     assert np.max(np.abs(err - np.median(err))) < 1.0
+
+
+def _edge_problem(rng, sigma_e_um, sigma_f_um, rows=128, cols=128):
+    """A smooth surface observed by independent edge steps and heights of known noise."""
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    h = 30 * np.sin(x / 17.0) * np.cos(y / 23.0) + 0.2 * x
+    tx = (np.diff(h, axis=1) + rng.normal(0, 1, (rows, cols - 1)) * sigma_e_um).astype(np.float32)
+    ty = (np.diff(h, axis=0) + rng.normal(0, 1, (rows - 1, cols)) * sigma_e_um).astype(np.float32)
+    f = (h + rng.normal(0, 1, h.shape) * sigma_f_um).astype(np.float32)
+    return h, tx, ty, f
+
+
+@pytest.mark.parametrize(
+    ("claimed_e", "true_e", "claimed_f", "true_f"),
+    [(0.5, 1.5, 2.0, 2.0), (0.5, 0.5, 2.0, 6.0), (1.0, 1.0, 1.0, 1.0)],
+)
+def test_variance_factors_recover_the_true_noise(claimed_e, true_e, claimed_f, true_f):
+    # The factors are (true σ / claimed σ)². The residuals of 16k heights and 32k edges give
+    # each factor from a MAD, relative standard error ≈ 2·1.17/√n ≈ 1.8 % (heights) and 1.3 %
+    # (edges); the lattice leverage is an approximation at the mask border (~3 % of the
+    # pixels here) and where the weights vary: 10 % is over 5 standard errors.
+    from worker.recon.fusion import variance_factors
+    from worker.recon.integrate import solve_screened_poisson
+
+    rng = np.random.default_rng(5)
+    h, tx, ty, f = _edge_problem(rng, true_e, true_f)
+    wx = np.full(tx.shape, 1 / claimed_e**2, np.float32)
+    wy = np.full(ty.shape, 1 / claimed_e**2, np.float32)
+    lam = np.full(f.shape, 1 / claimed_f**2, np.float32)
+    # One round splits the misfit by the claimed weights' leverages; iterated (Förstner
+    # 1979) the product of the rounds' factors converges to the truth.
+    total_e, total_f = np.ones_like(wx), np.ones_like(lam)
+    for _ in range(4):
+        sol = solve_screened_poisson(tx, ty, wx, wy, data_um=f, data_weight=lam, rtol=1e-6)
+        fx, fy, ff = variance_factors(sol.height_um, f, lam, wx, wy, tx, ty, classes=1)
+        wx, wy, lam = wx / fx, wy / fy, lam / ff
+        total_e, total_f = total_e * fx, total_f * ff
+    assert np.allclose(total_e, (true_e / claimed_e) ** 2, rtol=0.1)
+    assert np.allclose(total_f, (true_f / claimed_f) ** 2, rtol=0.1)
+
+
+def test_variance_classes_separate_edges_whose_noise_was_ranked_wrongly():
+    # Half the edges claim σ 0.5 but have 1.5, the other half claim 1.0 and have 1.0: with
+    # two weight classes each gets its own factor (9 and 1); 16k edges per class give
+    # ≈ 1.8 % relative standard error, the leverage's approximation a few %: 15 % tolerance.
+    from worker.recon.fusion import variance_factors
+    from worker.recon.integrate import solve_screened_poisson
+
+    rng = np.random.default_rng(6)
+    h, tx, ty, f = _edge_problem(rng, 1.0, 2.0)
+    left_x = np.zeros(tx.shape, bool)
+    left_x[:, : tx.shape[1] // 2] = True
+    left_y = np.zeros(ty.shape, bool)
+    left_y[:, : ty.shape[1] // 2] = True
+    y, x = np.mgrid[0 : h.shape[0], 0 : h.shape[1]].astype(np.float64)
+    h_true = 30 * np.sin(x / 17.0) * np.cos(y / 23.0) + 0.2 * x
+    tx = np.where(left_x, np.diff(h_true, axis=1) + 1.5 * (tx - np.diff(h_true, axis=1)), tx)
+    ty = np.where(left_y, np.diff(h_true, axis=0) + 1.5 * (ty - np.diff(h_true, axis=0)), ty)
+    wx = np.where(left_x, 4.0, 1.0).astype(np.float32)
+    wy = np.where(left_y, 4.0, 1.0).astype(np.float32)
+    lam = np.full(f.shape, 0.25, np.float32)
+    sol = solve_screened_poisson(
+        tx.astype(np.float32), ty.astype(np.float32), wx, wy, data_um=f, data_weight=lam, rtol=1e-6
+    )
+    fx, fy, _ = variance_factors(sol.height_um, f, lam, wx, wy, tx, ty, classes=2)
+    assert np.allclose(fx[left_x], 9.0, rtol=0.15)
+    assert np.allclose(fx[~left_x], 1.0, rtol=0.15)
+    assert np.allclose(fy[left_y], 9.0, rtol=0.15)
+
+
+def test_variance_components_help_when_the_normals_are_worse_than_claimed():
+    # Normals 4× noisier than their σ says: the estimated factor (≈ 16 in variance) gives
+    # the fringe heights their due weight, so the fused heights must improve clearly (the
+    # balance off by c = 16 costs (1 + c)²/4c ≈ 4.5× in variance, i.e. ~2× in RMS; we ask
+    # for 10 %). With honest σ the slope factor comes out ≈ 0.6, not 1: two edges sharing a
+    # pixel share its white noise, which the per-edge model does not know (on real normals,
+    # whose errors are correlated over several pixels, the factor is ≈ 0.8). A balance off
+    # by c = 2 costs at most (1 + c)²/4c = 9/8 in variance, ≈ 6 % in RMS: the bound used.
+    rng = np.random.default_rng(12)
+    h, gx, gy = _surface()
+    mask = _mask(h.shape)
+    n_bad = _normals(
+        gx + rng.normal(0, 4 * SIGMA_N_RAD, gx.shape), gy + rng.normal(0, 4 * SIGMA_N_RAD, gy.shape)
+    )
+    n_ok, f = _noisy(rng, h, gx, gy)
+    for normals, must_gain in ((n_bad, True), (n_ok, False)):
+        errs = []
+        for vce in (False, True):
+            got = fuse_default(
+                normals,
+                f,
+                pixel_size_um=S_UM,
+                mask=mask,
+                normal_sigma_rad=SIGMA_N_RAD,
+                height_sigma_um=SIGMA_F_UM,
+                variance_components=vce,
+            )
+            e = (got - h)[mask]
+            errs.append(_rms(e - e.mean()))
+        if must_gain:
+            assert errs[1] < 0.9 * errs[0], errs
+        else:
+            assert errs[1] < 1.061 * errs[0], errs
