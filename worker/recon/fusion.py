@@ -121,9 +121,10 @@ def fuse_default(
     cut_x = cut_y = None
     if has_f.any() and outlier_sigmas > 0:
         cut_x, cut_y = _bent_edges(gx, gy, step_sigma, s, k=outlier_sigmas)
-        wx, wy = _cut_discontinuities(
+        wx, wy, stranded = _cut_discontinuities(
             f_c, sig_f[crop], has_f, wx, wy, tx, ty, cut_x, cut_y, k=outlier_sigmas
         )
+        lam = np.where(stranded, np.float32(0), lam)
     lam = _anchor_parts_without_data(m_c, lam, wx, wy)
     x0 = np.where(has_f, f_c, np.float32(np.nanmedian(f_c[has_f]) if has_f.any() else 0))
     robust_pass = has_f.any() and outlier_sigmas > 0 and robust_passes > 0
@@ -366,9 +367,48 @@ def _cut_discontinuities(f, sig_f, has_f, wx, wy, tx, ty, cut_x, cut_y, *, k):
         keep = np.where(np.isfinite(keep) & allowed, keep, 1).astype(np.float32)
         return w * keep
 
+    wx0, wy0 = wx, wy
     wx = cut(wx, tx, filled[:, :-1], filled[:, 1:], var_f[:, :-1], var_f[:, 1:], cut_x)
     wy = cut(wy, ty, filled[:-1, :], filled[1:, :], var_f[:-1, :], var_f[1:, :], cut_y)
-    return wx, wy
+    active = np.concatenate([wx0[wx0 > 0], wy0[wy0 > 0]])
+    faint = np.float32(1e-3 * (float(np.median(active)) if active.size else 1.0))
+    wx, sx = _cut_through_untrusted(wx, wx0, tx, filled, var_f, cut_x, k, faint)
+    wy, sy = _cut_through_untrusted(wy.T, wy0.T, ty.T, filled.T, var_f.T, cut_y.T, k, faint)
+    return wx, wy.T, sx | sy.T
+
+
+def _cut_through_untrusted(w, w0, t, f, var_f, allowed, k, faint):
+    """Cut the in-line edges of an untrusted pixel that a cliff runs through.
+
+    The pixels straddling a cliff (or at its foot, shadowed for every azimuth) have no
+    fringe height, or one that fits neither side (the phases of both sides mix; the normal
+    is flat on both), so their own edges cannot be tested, and their slope terms carry the
+    cliff's pull from one side to the other over several pixels. The two-edge path over
+    such a pixel is tested instead: its trusted neighbours along the row against the sum
+    of the two targets, σ² = σ_f,a² + σ_f,b² + 1/w₁ + 1/w₂. Beyond k·σ the pixel is
+    "stranded": both edges get the same faint weight and (by the caller) no fringe term, so
+    it settles at the mean of its neighbours — between the sides, where the area mean of a
+    straddling pixel lies — without pulling either side. Rows are axis 1.
+    Returns (w, stranded (H, W) bool).
+    """
+    gap = np.zeros(f.shape, bool)
+    gap[:, 1:-1] = ~np.isfinite(var_f[:, 1:-1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        var = (
+            var_f[:, :-2]
+            + var_f[:, 2:]
+            + np.where(w0[:, :-1] > 0, 1 / w0[:, :-1], np.inf)
+            + np.where(w0[:, 1:] > 0, 1 / w0[:, 1:], np.inf)
+        )
+        r2 = np.square(f[:, 2:] - f[:, :-2] - t[:, :-1] - t[:, 1:])
+        broken = r2 > k * k * var
+    broken &= gap[:, 1:-1] & allowed[:, :-1] & allowed[:, 1:] & np.isfinite(var)
+    w = w.copy()
+    w[:, :-1] = np.where(broken, np.minimum(w[:, :-1], faint), w[:, :-1])
+    w[:, 1:] = np.where(broken, np.minimum(w[:, 1:], faint), w[:, 1:])
+    stranded = np.zeros(f.shape, bool)
+    stranded[:, 1:-1] = broken
+    return w, stranded
 
 
 def _step_consistent(f, sig_f, has_f, wx, wy, tx, ty, *, k):

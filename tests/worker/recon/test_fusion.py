@@ -421,3 +421,35 @@ def test_variance_components_help_when_the_normals_are_worse_than_claimed():
             assert errs[1] < 0.9 * errs[0], errs
         else:
             assert errs[1] < 1.061 * errs[0], errs
+
+
+def test_pixels_straddling_a_cliff_do_not_carry_its_pull():
+    # The same 300 µm wall, but the column of pixels straddling it has the area mean of both
+    # sides (h + 150) and a fringe height that fits neither (the two sides' phases mix:
+    # spread ±60 µm), so no edge next to it can be tested directly. Its two-edge paths are:
+    # the wall is cut through it and it settles between the sides (within half the step of
+    # its area mean), while pixels ≥ 2 px away keep the fringe-limited accuracy (1 µm, as
+    # above).
+    rng = np.random.default_rng(22)
+    h, gx, gy = _surface()
+    wall = 64
+    cols = np.arange(h.shape[1])
+    h = h + np.where(cols > wall, 300.0, np.where(cols == wall, 150.0, 0.0))[None, :]
+    gx = gx.copy()
+    gx[:, wall - 1 : wall + 2] += 20.0 / S_UM / 2
+    n, f = _noisy(rng, h, gx, gy)
+    f[:, wall] += rng.normal(0, 60.0, h.shape[0]).astype(np.float32)
+    mask = _mask(h.shape)
+    got = fuse_default(
+        n,
+        f,
+        pixel_size_um=S_UM,
+        mask=mask,
+        normal_sigma_rad=SIGMA_N_RAD,
+        height_sigma_um=SIGMA_F_UM,
+    )
+    away = mask & (np.abs(cols - wall) >= 2)[None, :]
+    err = (got - h)[away]
+    assert np.max(np.abs(err - np.median(err))) < 1.0
+    on = mask[:, wall]
+    assert np.max(np.abs((got - h)[on, wall] - np.median(err))) < 150.0
