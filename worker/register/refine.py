@@ -138,7 +138,7 @@ def _placed_points(scans, transforms) -> np.ndarray | None:
 
 
 def _leave_one_out(
-    scans, transforms, distances, voxel, labels_moved, tolerance_px=None
+    scans, transforms, distances, voxel, labels_moved, tolerance_px=None, worst_first=False
 ) -> list[np.ndarray]:
     """Each scan against all the others, coarse to fine from its current transform; then a
     scan that fits far worse than the rest (a recorded pose tens of degrees wrong) is
@@ -168,7 +168,7 @@ def _leave_one_out(
 
     fitness = [0.0] * len(scans)
     order = list(range(len(scans)))
-    if tolerance_px is not None:  # the least consistent first, before it misleads the others
+    if worst_first:  # the least consistent first, before it misleads the others
         order.sort(key=lambda k: consistency(k, out[k]))
     for k in order:
         src = cloud_of(scans[k]).voxel_down_sample(voxel)
@@ -331,13 +331,34 @@ def register_scans(
     fine_mm = 0.7 * pixel_mm
     grids = all(s.grid is not None for s in scans)
     if grids:  # coarse only, on thinned clouds: the projective refinement does the fine part
-        loo, loo_voxel = (diameter / 25.0, 4.0 * voxel, 2.0 * voxel), voxel
+        loo, loo_voxel = (diameter / 25.0, 4.0 * voxel, 2.0 * voxel), 2.0 * voxel
     else:
         loo, loo_voxel = (diameter / 25.0, 4.0 * pixel_mm, 2.0 * pixel_mm, fine_mm), pixel_mm
     # Silhouettes are compared to within the coarse stage's accuracy, a few sample spacings.
     tolerance_px = 4.0 * voxel / pixel_mm if grids else None
-    for _ in range(loo_rounds):
-        transforms = _leave_one_out(scans, transforms, loo, loo_voxel, restarted, tolerance_px)
+    if grids:
+        # Two orders of the pass (as given; least consistent first): a wrong pose can mislead
+        # the neighbours processed before it, or be handled before its neighbours have found
+        # their places. The outcome whose least consistent scan is most consistent is kept.
+        # The second order only runs when the first leaves a scan inconsistent.
+        outcomes = []
+        for worst_first in (False, True):
+            moved: list[str] = []
+            t = list(transforms)
+            for _ in range(loo_rounds):
+                t = _leave_one_out(scans, t, loo, loo_voxel, moved, tolerance_px, worst_first)
+            worst = min(
+                silhouette_consistency(scans, t, k, tolerance_px=tolerance_px)
+                for k in range(len(scans))
+            )
+            outcomes.append((worst, t, moved))
+            if worst >= 0.95:
+                break
+        _, transforms, moved = max(outcomes, key=lambda o: o[0])
+        restarted.extend(moved)
+    else:
+        for _ in range(loo_rounds):
+            transforms = _leave_one_out(scans, transforms, loo, loo_voxel, restarted)
     clouds = [cloud_of(s) for s in scans]
     anchor = next((i for i, how in enumerate(init) if how in ("anchor", "pose")), 0)
     if "pose" not in init:  # no pose at all: the obverse (else the first) scan is the anchor
