@@ -122,7 +122,17 @@ def fuse_default(
     if has_f.any() and outlier_sigmas > 0:
         cut_x, cut_y = _bent_edges(gx, gy, step_sigma, s, k=outlier_sigmas)
         wx, wy, stranded = _cut_discontinuities(
-            f_c, sig_f[crop], has_f, wx, wy, tx, ty, cut_x, cut_y, k=outlier_sigmas
+            f_c,
+            sig_f[crop],
+            has_f,
+            wx,
+            wy,
+            tx,
+            ty,
+            cut_x,
+            cut_y,
+            k=outlier_sigmas,
+            max_step=np.float32(s * _MAX_SLOPE),
         )
         lam = np.where(stranded, np.float32(0), lam)
     lam = _anchor_parts_without_data(m_c, lam, wx, wy)
@@ -343,7 +353,7 @@ def _bent_edges(gx, gy, step_sigma, s, *, k):
     return broken[:, 1:] | broken[:, :-1], broken[1:, :] | broken[:-1, :]
 
 
-def _cut_discontinuities(f, sig_f, has_f, wx, wy, tx, ty, cut_x, cut_y, *, k):
+def _cut_discontinuities(f, sig_f, has_f, wx, wy, tx, ty, cut_x, cut_y, *, k, max_step):
     """Down-weight edges whose slope step contradicts the fringes' own step.
 
     A normal cannot express a height discontinuity (a cliff at a chip, the wall of a deep
@@ -372,12 +382,17 @@ def _cut_discontinuities(f, sig_f, has_f, wx, wy, tx, ty, cut_x, cut_y, *, k):
     wy = cut(wy, ty, filled[:-1, :], filled[1:, :], var_f[:-1, :], var_f[1:, :], cut_y)
     active = np.concatenate([wx0[wx0 > 0], wy0[wy0 > 0]])
     faint = np.float32(1e-3 * (float(np.median(active)) if active.size else 1.0))
-    wx, sx = _cut_through_untrusted(wx, wx0, tx, filled, var_f, cut_x, k, faint)
-    wy, sy = _cut_through_untrusted(wy.T, wy0.T, ty.T, filled.T, var_f.T, cut_y.T, k, faint)
+    wx, sx = _cut_through_untrusted(wx, wx0, tx, filled, var_f, cut_x, k, faint, max_step)
+    wy, sy = _cut_through_untrusted(
+        wy.T, wy0.T, ty.T, filled.T, var_f.T, cut_y.T, k, faint, max_step
+    )
     return wx, wy.T, sx | sy.T
 
 
-def _cut_through_untrusted(w, w0, t, f, var_f, allowed, k, faint):
+_MAX_SLOPE = float(np.tan(np.radians(60.0)))  # steepest ground the fusion treats as continuous
+
+
+def _cut_through_untrusted(w, w0, t, f, var_f, allowed, k, faint, max_step):
     """Cut the in-line edges of an untrusted pixel that a cliff runs through.
 
     The pixels straddling a cliff (or at its foot, shadowed for every azimuth) have no
@@ -385,7 +400,10 @@ def _cut_through_untrusted(w, w0, t, f, var_f, allowed, k, faint):
     is flat on both), so their own edges cannot be tested, and their slope terms carry the
     cliff's pull from one side to the other over several pixels. The two-edge path over
     such a pixel is tested instead: its trusted neighbours along the row against the sum
-    of the two targets, σ² = σ_f,a² + σ_f,b² + 1/w₁ + 1/w₂. Beyond k·σ the pixel is
+    of the two targets, σ² = σ_f,a² + σ_f,b² + 1/w₁ + 1/w₂, and against what ground of the
+    steepest slope the fusion treats as continuous (60°) can rise over two pixels,
+    `max_step` per pixel (steep rims and strokes at coarse pixels are not cliffs). Beyond
+    both the pixel is
     "stranded": both edges get the same faint weight and (by the caller) no fringe term, so
     it settles at the mean of its neighbours — between the sides, where the area mean of a
     straddling pixel lies — without pulling either side. Rows are axis 1.
@@ -401,7 +419,7 @@ def _cut_through_untrusted(w, w0, t, f, var_f, allowed, k, faint):
             + np.where(w0[:, 1:] > 0, 1 / w0[:, 1:], np.inf)
         )
         r2 = np.square(f[:, 2:] - f[:, :-2] - t[:, :-1] - t[:, 1:])
-        broken = r2 > k * k * var
+        broken = (r2 > k * k * var) & (r2 > np.square(2 * max_step))
     broken &= gap[:, 1:-1] & allowed[:, :-1] & allowed[:, 1:] & np.isfinite(var)
     w = w.copy()
     w[:, :-1] = np.where(broken, np.minimum(w[:, :-1], faint), w[:, :-1])
