@@ -30,6 +30,9 @@ from worker.register.pointcloud import ScanCloud
 __all__ = ["PairReport", "Registration", "register_scans"]
 
 _REG = o3d.pipelines.registration
+# How far the coarse search may turn a scan from its first placement (pose or face label):
+# twice the 20° of a wrong recorded pose that it must correct (issue 8).
+MAX_TURN_DEG = 40.0
 
 
 @dataclass(frozen=True)
@@ -138,7 +141,14 @@ def _placed_points(scans, transforms) -> np.ndarray | None:
 
 
 def _leave_one_out(
-    scans, transforms, distances, voxel, labels_moved, tolerance_px=None, worst_first=False
+    scans,
+    transforms,
+    distances,
+    voxel,
+    labels_moved,
+    tolerance_px=None,
+    worst_first=False,
+    prior=None,
 ) -> list[np.ndarray]:
     """Each scan against all the others, coarse to fine from its current transform; then a
     scan that fits far worse than the rest (a recorded pose tens of degrees wrong) is
@@ -155,6 +165,11 @@ def _leave_one_out(
     out = list(transforms)
 
     def consistency(k, t):
+        # A box-like tablet is nearly symmetric: a face turned over, or an edge scan turned a
+        # quarter, can fit the silhouettes. The search corrects poses up to ~20° wrong; a
+        # candidate beyond MAX_TURN_DEG from the first placement is not one of those.
+        if prior is not None and _rotation_deg(t, prior[k]) > MAX_TURN_DEG:
+            return -1.0
         return silhouette_consistency(
             scans, [*out[:k], t, *out[k + 1 :]], k, tolerance_px=tolerance_px
         )
@@ -346,7 +361,9 @@ def register_scans(
             moved: list[str] = []
             t = list(transforms)
             for _ in range(loo_rounds):
-                t = _leave_one_out(scans, t, loo, loo_voxel, moved, tolerance_px, worst_first)
+                t = _leave_one_out(
+                    scans, t, loo, loo_voxel, moved, tolerance_px, worst_first, transforms
+                )
             worst = min(
                 silhouette_consistency(scans, t, k, tolerance_px=tolerance_px)
                 for k in range(len(scans))
