@@ -1,10 +1,13 @@
-"""Register all scans of a tablet: coarse placement, leave-one-out multi-start ICP, then
-pairwise point-to-plane ICP on the overlaps and a global adjustment over all pairs.
+"""Register all scans of a tablet: coarse placement, leave-one-out multi-start ICP guided by
+silhouette consistency, then all poses at once on projective point-to-plane correspondences
+of every pair (:mod:`worker.register.joint`).
 
-The global adjustment is Open3D's pose graph (Choi, Zhou & Koltun, "Robust reconstruction
-of indoor scenes", CVPR 2015, with line processes that prune inconsistent pairs): nodes are
-the scan → tablet transforms, edges the pairwise ICP results weighted by their information
-matrices (the Gauss-Newton Hessian of the point-to-plane residuals).
+Scans without a height map (bare point clouds) take the earlier fine stage: pairwise
+point-to-plane ICP on the overlaps and a global adjustment over all pairs, Open3D's pose
+graph (Choi, Zhou & Koltun, "Robust reconstruction of indoor scenes", CVPR 2015, with line
+processes that prune inconsistent pairs): nodes are the scan → tablet transforms, edges the
+pairwise ICP results weighted by their information matrices (the Gauss-Newton Hessian of
+the point-to-plane residuals).
 """
 
 from __future__ import annotations
@@ -321,10 +324,14 @@ def register_scans(
 
     1. Place each scan: from ``pose`` (centred, :func:`centring_transform`), else by the face
        label's standard orientation or FPFH features, whichever ICP fits best.
-    2. ``loo_rounds`` × each scan against the union of the others, coarse to fine (1/25 of
-       the tablet → 0.7 pixel); a scan fitting far worse than the rest is searched again
-       from starts turned by 20° about 14 axes (a recorded pose tens of degrees wrong).
-    3. ``rounds`` × pairwise ICP on every overlapping pair (fitness ≥ ``min_overlap``) at
+    2. ``loo_rounds`` × each scan against the union of the others (:func:`_leave_one_out`):
+       with height maps coarse only (1/25 of the tablet → 2 voxels), guided by silhouette
+       consistency, which also finds a recorded pose tens of degrees wrong and searches it
+       again from starts turned by 20° about 26 axes; bare clouds down to 0.7 pixel, by
+       overlap, 14 axes.
+    3. With height maps: all poses at once on projective point-to-plane correspondences,
+       gates 8 → 1 pixel (:func:`worker.register.joint.joint_refine`). Bare clouds:
+       ``rounds`` × pairwise ICP on every overlapping pair (fitness ≥ ``min_overlap``) at
        0.7 pixel, then the pose graph over all pairs; then ``rounds`` × each scan against
        all others at full density and 0.7 pixel (:func:`_polish`).
     4. The tablet frame's origin is put at the centre of the registered points' bounding box;
