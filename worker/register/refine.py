@@ -378,8 +378,7 @@ def register_scans(
             outcomes.append((worst, t, moved))
             if worst >= 0.95:
                 break
-        _, transforms, moved = max(outcomes, key=lambda o: o[0])
-        restarted.extend(moved)
+        transforms = max(outcomes, key=lambda o: o[0])[1]
     else:
         for _ in range(loo_rounds):
             transforms = _leave_one_out(scans, transforms, loo, loo_voxel, restarted)
@@ -389,13 +388,24 @@ def register_scans(
         anchor = next((i for i, s in enumerate(scans) if s.face == "obverse"), 0)
     surface_rms: dict = {}
     if grids:
-        # Height maps: all poses at once on projective correspondences (worker.register.joint)
-        transforms, surface_rms = joint_refine(
-            scans,
-            transforms,
-            anchor=anchor,
-            gates_mm=(8.0 * pixel_mm, 4.0 * pixel_mm, 2.0 * pixel_mm, pixel_mm),
-        )
+        # Height maps: all poses at once on projective correspondences (worker.register.joint).
+        # From each coarse outcome (two when the first order left a scan inconsistent): the
+        # fine stage can slide an edge scan that starts a few degrees off along its nearly
+        # free roll into a second minimum, which its silhouette (to 2 pixels) then betrays.
+        finals = []
+        for _, start, moved in outcomes:
+            t, stats = joint_refine(
+                scans,
+                start,
+                anchor=anchor,
+                gates_mm=(8.0 * pixel_mm, 4.0 * pixel_mm, 2.0 * pixel_mm, pixel_mm),
+            )
+            worst = min(
+                silhouette_consistency(scans, t, k, tolerance_px=2.0) for k in range(len(scans))
+            )
+            finals.append((worst, t, stats, moved))
+        _, transforms, surface_rms, moved = max(finals, key=lambda f: f[0])
+        restarted.extend(moved)
         index = {s.label: i for i, s in enumerate(scans)}
         used = {tuple(sorted((index[a], index[b]))) for a, b in surface_rms}
     else:  # bare point clouds: pairwise ICP, pose graph, polish
