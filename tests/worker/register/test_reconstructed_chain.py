@@ -9,6 +9,7 @@ where the reconstructed heights carry smooth errors of a few µm (2–7 µm RMS 
 tilt), and a narrow edge scan's roll about its long axis is fixed by those rims alone. What is
 tested:
 
+- at 107 µm pixels (320×256) the reconstructed faces meet the issue's 0.05° and one pixel;
 - the registration itself meets the issue's criteria on the reconstruction's own masks,
   normals and sampling when the heights are right (the simulator's true heights);
 - from the reconstructed heights, the relative poses are within one pixel everywhere on the
@@ -37,8 +38,8 @@ from .synthetic import relative_errors, truth_transform
 SIZE = (160, 128)
 
 
-def _chain(work):
-    sim = simulate_scan(work / "sim", seed=0, face="all", preset="quick", size=SIZE)
+def _chain(work, size=SIZE):
+    sim = simulate_scan(work / "sim", seed=0, face="all", preset="quick", size=size)
     poses = json.loads((work / "sim" / "poses.json").read_text())["poses"]
     scans, raw, truths = [], [], []
     for face, bundle in sim.bundles.items():
@@ -105,3 +106,15 @@ def test_six_reconstructed_faces_register(tmp_path):
     rot_bad, trans_bad = relative_errors(register_scans(bad).transforms, truths)
     assert trans_bad < pixel_mm, trans_bad
     assert np.radians(rot_bad) * radius_mm < pixel_mm, rot_bad
+
+
+@pytest.mark.slow
+def test_six_reconstructed_faces_at_107um_meet_the_goal(tmp_path):
+    """Issue 8's criteria through the whole chain at 320×256 (107 µm pixels): relative poses
+    under 0.05° and under one pixel (measured 0.018° / 12.2 µm on seed 0, ~35 CPU s)."""
+    scans, _, truths = _chain(tmp_path, size=(320, 256))
+    reg = register_scans(scans)
+    assert reg.init == ["pose"] * 6
+    rot_deg, trans_mm = relative_errors(reg.transforms, truths)
+    assert rot_deg < 0.05, rot_deg
+    assert trans_mm < scans[0].pixel_size_um / 1000, trans_mm
