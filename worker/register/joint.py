@@ -115,13 +115,19 @@ def silhouette_consistency(
 ) -> float:
     """Of the points of the other placed scans (``transforms``; None = not placed) projected
     into scan ``k``'s image, and of ``k``'s points projected into each other scan's image,
-    the fraction that falls within ``tolerance_px`` of that image's tablet mask.
+    the fraction that falls within ``tolerance_px`` of that image's tablet mask and not more
+    than ``tolerance_px`` (pixel sizes) in front of that image's measured surface.
 
     Every view is orthographic and sees the whole tablet's outline, so every surface point
     of the tablet lies inside every view's silhouette (the visual hull; silhouette
     coherence, Hernández, Schmitt & Cipolla 2007). A pose that slides a rounded edge scan
     around the tablet, which point-to-surface distances hardly notice, swings that view's
-    silhouette across the others' points. 1.0 for a consistent pose."""
+    silhouette across the others' points. The hull alone accepts a face tilted into the
+    tablet's interior (issue 8: the reverse tilted 16.8°, every point inside every
+    silhouette); a view, though, sees the nearest surface, so no point of the tablet lies in
+    front of it (free-space / visibility consistency, Merrell et al., "Real-time
+    visibility-based fusion of depth maps", ICCV 2007), and the sunken face's own view has
+    the edges' points millimetres in front of it. 1.0 for a consistent pose."""
     inside = total = 0
     for j, t in enumerate(transforms):
         if j == k or t is None:
@@ -138,9 +144,15 @@ def silhouette_consistency(
             h, w = grid.outside_px.shape
             # Beyond the image's border: as the border pixel there, so that a tablet cut by
             # the frame is not held against the scan, and a scan thrown far off counts.
-            d = grid.outside_px[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)]
+            rc, cc = np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)
+            d = grid.outside_px[rc, cc]
+            # View z = −h: a point nearer the camera than the measured surface (pixels where
+            # the height is kept only; elsewhere, as off the image, nothing is known).
+            surface_z_mm = -grid.height_um[rc, cc] / 1000.0
+            ahead_px = np.nan_to_num((surface_z_mm - q[:, 2]) / s_mm, nan=-np.inf)
+            ahead_px[(r != rc) | (c != cc)] = -np.inf
             total += len(d)
-            inside += int(np.sum(d <= tolerance_px))
+            inside += int(np.sum((d <= tolerance_px) & (ahead_px <= tolerance_px)))
     return inside / total if total else 1.0
 
 
