@@ -2,7 +2,7 @@
 with the pipeline, register them, and compare the relative poses with the simulator's truth.
 
     .venv/bin/python bench/register_reconstructed.py [--size 160x128] [--seed 0] [--work DIR]
-        [--rim]
+        [--rim] [--wrong-pose-sweep]
 
 Unlike bench/register.py (ground-truth heights: the registration alone), this measures the
 whole chain that a museum's scans go through. Prints a Markdown table (wall and CPU seconds
@@ -16,6 +16,7 @@ overlaps between views lie on the steep rims).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import tempfile
@@ -24,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "worker" / "register"))
 
@@ -87,6 +89,31 @@ def rim_table(raw: dict, gt_dirs: dict) -> None:
         )
 
 
+SWEEP_AXES = ([1.0, 1.0, 0.0], [0.0, 1.0, 1.0], [1.0, 0.0, -1.0])
+
+
+def wrong_pose_sweep(scans: list, truths: list, faces: list[str], angle_deg: float = 20.0) -> None:
+    """Each scan's recorded pose in turn turned by `angle_deg` about each of three axes (issue 8:
+    robust to a pose 20° wrong); one registration per case, errors against the truth."""
+    print()
+    print("| turned scan | axis | max rel. rotation ° | max rel. translation µm | wall s (CPU) |")
+    print("|---|---|---|---|---|")
+    worst, clock = 0.0, _Clock()
+    for axis in SWEEP_AXES:
+        turn = Rotation.from_rotvec(np.radians(angle_deg) * np.array(axis) / np.linalg.norm(axis))
+        for k, face in enumerate(faces):
+            bad = list(scans)
+            bad[k] = dataclasses.replace(scans[k], pose=turn.as_matrix() @ scans[k].pose)
+            rot, trans = relative_errors(register_scans(bad).transforms, truths)
+            lap = clock.lap()
+            worst = max(worst, rot)
+            print(
+                f"| {face} | ({axis[0]:g}, {axis[1]:g}, {axis[2]:g}) | {rot:.3f} "
+                f"| {trans * 1000:.1f} | {lap[0]:.1f} ({lap[1]:.1f}) |"
+            )
+    print(f"\nworst rotation over {len(SWEEP_AXES) * len(faces)} cases: {worst:.3f}°")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", default="160x128")
@@ -95,6 +122,11 @@ def main() -> None:
         "--work", help="working folder (default: a temporary one); an earlier run's is reused"
     )
     parser.add_argument("--rim", action="store_true", help="also the rim height-error table")
+    parser.add_argument(
+        "--wrong-pose-sweep",
+        action="store_true",
+        help="also register with each scan's pose turned 20° about three axes (18 cases)",
+    )
     args = parser.parse_args()
     size = tuple(int(v) for v in args.size.split("x"))
     work = Path(args.work or tempfile.mkdtemp(prefix="register-chain-"))
@@ -162,6 +194,8 @@ def main() -> None:
     )
     if args.rim:
         rim_table(raw, gt_dirs)
+    if args.wrong_pose_sweep:
+        wrong_pose_sweep(scans, truths, list(raw))
 
 
 if __name__ == "__main__":
