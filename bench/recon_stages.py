@@ -17,11 +17,11 @@ import tracemalloc
 import numpy as np
 
 from worker.recon.color import linear_to_srgb8, rgb_reflectance
-from worker.recon.fringe import carre_phase, four_step_phase
-from worker.recon.height import combine_azimuths, fill_holes, height_from_phase
+from worker.recon.fringe import carre_phase, four_step_phase, intensity_noise, phase_sigma_rad
+from worker.recon.height import consensus_azimuths, fill_holes, height_from_phase
 from worker.recon.photometric import light_directions, photometric_stereo
 from worker.recon.radiometry import flat_field
-from worker.recon.unwrap import phase_difference, temporal_unwrap
+from worker.recon.unwrap import noise_aware_unwrap
 
 ROWS: list[tuple[str, float, float, float]] = []
 
@@ -68,25 +68,41 @@ def main() -> None:
     timed("linear_to_srgb8", linear_to_srgb8, rgb.rgb)
 
     periods = 34304.0 / (0.25 * 2.0 ** np.arange(10))
-    heights, weights = [], []
-    phase_rows = {"four_step_phase (80 sets)": [0.0, 0.0], "carre_phase (80 sets)": [0.0, 0.0]}
+    heights, sigmas = [], []
+    phase_rows = {
+        "four_step_phase (80 sets)": [0.0, 0.0],
+        "phase noise (80 sets, obj + ref)": [0.0, 0.0],
+        "carre_phase (80 sets)": [0.0, 0.0],
+    }
     for a in (0.0, 90.0, 180.0, 270.0):
-        diffs, mods = [], []
+        diffs, noise = [], []
         for p in periods:
             psi_ref = (2 * np.pi * xx / (p / 26.8)).astype(np.float32)
             dpsi = (-2 * np.pi * height / p).astype(np.float32)
             fo = np.stack(
                 [
                     0.4 * (1 + 0.85 * np.cos(psi_ref + dpsi + d))
+                    + rng.normal(0, 0.003, psi_ref.shape)
                     for d in np.deg2rad([0, 90, 180, 270])
                 ]
             )
             fr = np.stack(
-                [0.5 * (1 + 0.85 * np.cos(psi_ref + d)) for d in np.deg2rad([0, 90, 180, 270])]
+                [
+                    0.5 * (1 + 0.85 * np.cos(psi_ref + d)) + rng.normal(0, 0.003, psi_ref.shape)
+                    for d in np.deg2rad([0, 90, 180, 270])
+                ]
             )
             t, c = time.perf_counter(), time.process_time()
             o, r = four_step_phase(fo), four_step_phase(fr)
             row = phase_rows["four_step_phase (80 sets)"]
+            row[0] += time.perf_counter() - t
+            row[1] += time.process_time() - c
+            # The phase noise as the pipeline estimates it (worker.measure.fringe).
+            t, c = time.perf_counter(), time.process_time()
+            sig_o = phase_sigma_rad(o, intensity_noise(o.mean, o.residual, phase_rad=o.phase_rad))
+            sig_r = phase_sigma_rad(r, intensity_noise(r.mean, r.residual, phase_rad=r.phase_rad))
+            noise.append(np.sqrt(sig_o**2 + sig_r**2))
+            row = phase_rows["phase noise (80 sets, obj + ref)"]
             row[0] += time.perf_counter() - t
             row[1] += time.process_time() - c
             t, c = time.perf_counter(), time.process_time()
@@ -95,20 +111,23 @@ def main() -> None:
             row = phase_rows["carre_phase (80 sets)"]
             row[0] += time.perf_counter() - t
             row[1] += time.process_time() - c
-            diffs.append(phase_difference(o.phase_rad, r.phase_rad))
-            mods.append(np.minimum(o.modulation, r.modulation))
+            diffs.append(o.phase_rad - r.phase_rad)
         un = timed(
-            f"temporal_unwrap (az {a:.0f}, 10 levels)",
-            temporal_unwrap,
+            f"noise_aware_unwrap (az {a:.0f}, 10 levels)",
+            noise_aware_unwrap,
             np.stack(diffs),
+            np.stack(noise),
             periods,
-            modulation=np.stack(mods),
         )
         heights.append(height_from_phase(un.dpsi_rad, period_um=periods[-1], polar_deg=45.0))
-        weights.append(un.weight)
+        sigmas.append(
+            np.abs(height_from_phase(un.sigma_rad, period_um=periods[-1], polar_deg=45.0))
+        )
     for name, (wall, cpu) in phase_rows.items():
         ROWS.append((name, wall, cpu, float("nan")))
-    comb = timed("combine_azimuths (A=4)", combine_azimuths, np.stack(heights), np.stack(weights))
+    comb = timed(
+        "consensus_azimuths (A=4)", consensus_azimuths, np.stack(heights), np.stack(sigmas)
+    )
     holes = comb.height_um.copy()
     holes[rng.uniform(size=holes.shape) < 0.01] = np.nan
     timed("fill_holes (1 % holes)", fill_holes, holes, np.ones(holes.shape, dtype=bool))
