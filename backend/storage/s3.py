@@ -101,6 +101,10 @@ class S3Storage(Storage):
             ChecksumSHA256=base64.b64encode(bytes.fromhex(sha256_hex)).decode(),
             Metadata={"sha256": sha256_hex},
         )
+        return self._stat_of_full_object(key, size_bytes)
+
+    def _stat_of_full_object(self, key: str, size_bytes: int) -> ObjectStat:
+        """The stored object's stat; an object shorter or longer than sent is deleted."""
         stat = self.stat(key)
         if stat.size_bytes != size_bytes:
             self.delete(key)
@@ -145,13 +149,7 @@ class S3Storage(Storage):
             )
         except S3UploadFailedError as exc:
             raise StorageError(f"object storage refused the upload: {exc}", key=key) from exc
-        stat = self.stat(key)
-        if stat.size_bytes != size_bytes:
-            self.delete(key)
-            raise StorageError(
-                f"object storage kept {stat.size_bytes} of {size_bytes} bytes", key=key
-            )
-        return stat
+        return self._stat_of_full_object(key, size_bytes)
 
     def put_bytes(self, key: str, data: bytes, *, sha256: str | None = None) -> ObjectStat:
         check_key(key)
