@@ -32,6 +32,7 @@ from worker.recon.quality import (
     fringe_sigma_um,
     normal_sigma_rad,
 )
+from worker.recon.walls import refine_cliff_heights
 
 __all__ = [
     "FUSIONS",
@@ -39,6 +40,7 @@ __all__ = [
     "ReconstructionError",
     "camera_blur_px",
     "reconstruct_bundle",
+    "refine_walls",
     "surface_of",
 ]
 
@@ -100,6 +102,10 @@ def reconstruct_bundle(
         meas, mask, fusion=fusion, surface=surface, blur_sigma_px=blur_px
     )
     timings["fusion"] = time.perf_counter() - t0
+    if used_surface == "default":
+        t0 = time.perf_counter()
+        height = refine_walls(meas, height, mask, blur_sigma_px=blur_px)
+        timings["walls"] = time.perf_counter() - t0
     mask &= np.isfinite(height)
 
     quality = _quality_maps(meas, height, mask)
@@ -242,6 +248,26 @@ def surface_of(
     if blur_sigma_px > 0:
         h = sharpen_heights(h, mask, blur_sigma_px=blur_sigma_px, pixel_size_um=s)
     return h, _unit_normals(meas.normals, h, mask, s), "default"
+
+
+def refine_walls(
+    meas: Measurements, height: np.ndarray, mask: np.ndarray, *, blur_sigma_px: float
+) -> np.ndarray:
+    """Heights of the pixels straddling a cliff set to their area mean from the fringe
+    mixture of the two sides (`recon.walls.refine_cliff_heights`); unchanged without
+    per-period fringe samples or photometric normals."""
+    if not meas.cliff_samples or meas.normals is None or meas.fringe_height_um is None:
+        return height
+    refined, _ = refine_cliff_heights(
+        height,
+        meas.fringe_height_um,
+        meas.normals,
+        mask,
+        meas.cliff_samples,
+        pixel_size_um=meas.pixel_size_um,
+        blur_sigma_px=blur_sigma_px,
+    )
+    return np.where(mask, refined, height).astype(np.float32)
 
 
 def _fringe_surface(height_um, mask):

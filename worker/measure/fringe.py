@@ -12,6 +12,7 @@ from worker.measure.frames import angle_key, prefetch
 from worker.recon.fringe import four_step_phase, intensity_noise, phase_sigma_rad
 from worker.recon.height import consensus_azimuths, height_from_phase
 from worker.recon.unwrap import noise_aware_unwrap
+from worker.recon.walls import cliff_samples
 
 __all__ = ["measure_fringes"]
 
@@ -63,11 +64,13 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress):
     harmonic_sets = 0
     wrapped: dict = {}
     noise: dict = {}
+    amps: dict = defaultdict(list)  # per level (object B, reference B), for cliff_samples
     total = len(groups)
     for i, stack in enumerate(prefetch(bundle, groups)):
         key, level = index[i]
         obj_phase = four_step_phase(stack[:4])
         ref_phase = four_step_phase(stack[4:])
+        amps[key].append((obj_phase.amplitude, ref_phase.amplitude))
         if level == 0:
             shape = (len(sets[key]), *obj_phase.phase_rad.shape)
             wrapped[key] = np.empty(shape, np.float32)
@@ -93,7 +96,8 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress):
                     ).astype(np.float32)
                 )
             periods = np.array([p for p, _, _ in levels])
-            un = noise_aware_unwrap(wrapped.pop(key), noise.pop(key), periods)
+            wrapped_az = wrapped.pop(key)
+            un = noise_aware_unwrap(wrapped_az, noise.pop(key), periods)
             h = height_from_phase(un.dpsi_rad, period_um=float(periods[-1]), polar_deg=key[1])
             sigma_h = np.abs(
                 height_from_phase(un.sigma_rad, period_um=float(periods[-1]), polar_deg=key[1])
@@ -107,6 +111,18 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress):
             ok = np.isfinite(h) & (un.conflicts <= 1) & (un.sigma_rad * _Z <= np.pi)
             summary[f"{key[0]:g}"] = _unwrap_summary(un, ok, periods)
             heights.append(np.where(ok, h, np.nan).astype(np.float32))
+            b_obj, b_ref = zip(*amps.pop(key), strict=True)
+            meas.cliff_samples.append(
+                cliff_samples(
+                    heights[-1],
+                    wrapped_az,
+                    list(b_obj),
+                    list(b_ref),
+                    period_um=periods,
+                    polar_deg=key[1],
+                    pixel_size_um=meas.pixel_size_um,
+                )
+            )
             sigmas.append(np.where(ok, sigma_h, np.nan).astype(np.float32))
             m = obj_phase.modulation
             mods.append(np.where(np.isfinite(m), m, np.nan).astype(np.float32))

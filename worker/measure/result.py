@@ -31,6 +31,7 @@ class Measurements:
     azimuths_used: np.ndarray | None = None
     modulation: np.ndarray | None = None
     rough_height_um: np.ndarray | None = None  # smooth, filled: where the light came from
+    cliff_samples: list = field(default_factory=list)  # per azimuth, recon.walls.CliffSamples
     used: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     timings: dict = field(default_factory=dict)
