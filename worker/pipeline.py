@@ -258,7 +258,7 @@ def refine_walls(
     per-period fringe samples or photometric normals."""
     if not meas.cliff_samples or meas.normals is None or meas.fringe_height_um is None:
         return height
-    refined, _ = refine_cliff_heights(
+    refined = refine_cliff_heights(
         height,
         meas.fringe_height_um,
         meas.normals,
@@ -266,7 +266,7 @@ def refine_walls(
         meas.cliff_samples,
         pixel_size_um=meas.pixel_size_um,
         blur_sigma_px=blur_sigma_px,
-    )
+    ).height_um
     return np.where(mask, refined, height).astype(np.float32)
 
 

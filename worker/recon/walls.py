@@ -24,11 +24,13 @@ wall shows no area) nor a single fringe phase (it lands on one side, or between)
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 
 __all__ = [
+    "CliffRefinement",
     "CliffSamples",
     "cliff_band",
     "cliff_samples",
@@ -112,6 +114,20 @@ def cliff_samples(
         period_um=np.asarray(period_um, np.float64),
         tan_theta=float(np.tan(np.radians(polar_deg))),
     )
+
+
+class CliffRefinement(NamedTuple):
+    """Output of :func:`refine_cliff_heights`, (H, W) float32 each.
+
+    height_um: the heights, refined at cliffs; fraction: f, the share of the pixel's area
+    on the upper side; upper_um, lower_um: the two sides' heights at the pixel. NaN where
+    not refined.
+    """
+
+    height_um: np.ndarray
+    fraction: np.ndarray
+    upper_um: np.ndarray
+    lower_um: np.ndarray
 
 
 def cliff_band(
@@ -347,7 +363,7 @@ def refine_cliff_heights(
     blur_sigma_px: float,
     min_jump_um: float | None = None,
     radius: int = 5,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> CliffRefinement:
     """Heights at cliffs replaced by the area mean f·h_hi + (1 − f)·h_lo.
 
     height_um: the surface so far (fused); fringe_height_um: the combined fringe heights
@@ -367,8 +383,7 @@ def refine_cliff_heights(
     inverse variance of a share), :func:`deblur_fractions`, then f·h_hi + (1 − f)·h_lo.
     Pixels without two sides or without a lit side in any azimuth keep their height.
 
-    Returns (new heights (H, W) float32, fraction f of the upper side (H, W) float32, NaN
-    where not refined).
+    Returns :class:`CliffRefinement`.
     """
     h = np.asarray(height_um, np.float32)
     m = np.asarray(mask, bool)
@@ -379,8 +394,10 @@ def refine_cliff_heights(
     jumps = cliff_band(base, m, min_jump_um=jump, pixel_size_um=s, normals=normals)
     out = h.copy()
     frac = np.full(h.shape, np.nan, np.float32)
+    upper = np.full(h.shape, np.nan, np.float32)
+    lower = np.full(h.shape, np.nan, np.float32)
     if not jumps.any() or not samples:
-        return out, frac
+        return CliffRefinement(out, frac, upper, lower)
     band = _dilate(jumps, 1) & m
     near = _dilate(band, 3) & m
     with np.errstate(invalid="ignore"):
@@ -393,7 +410,7 @@ def refine_cliff_heights(
     )
     rows, cols, h_hi, h_lo = rows[valid], cols[valid], h_hi[valid], h_lo[valid]
     if rows.size == 0:
-        return out, frac
+        return CliffRefinement(out, frac, upper, lower)
     mid = 0.5 * (h_hi + h_lo)
     num = np.zeros(rows.size)
     den = np.zeros(rows.size)
@@ -421,7 +438,9 @@ def refine_cliff_heights(
     f = deblur_fractions(num[ok] / den[ok], r_ok, c_ok, known, blur_sigma_px=blur_sigma_px)
     out[r_ok, c_ok] = (f * h_hi[ok] + (1.0 - f) * h_lo[ok]).astype(np.float32)
     frac[r_ok, c_ok] = f
-    return out, frac
+    upper[r_ok, c_ok] = h_hi[ok]
+    lower[r_ok, c_ok] = h_lo[ok]
+    return CliffRefinement(out, frac, upper, lower)
 
 
 def _dilate(a, r):

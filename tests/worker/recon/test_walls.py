@@ -171,7 +171,7 @@ def test_refine_gives_the_area_mean_at_a_cliff(angle_deg, offset_px):
     samples = _render(h_sub, upper, size, [0, 90, 180, 270], brightness, sigma, rng)
     normals = _normals(size, slope)
     mask = np.ones((size, size), bool)
-    out, frac = refine_cliff_heights(
+    out, frac, _, _ = refine_cliff_heights(
         h, h, normals, mask, samples, pixel_size_um=S_UM, blur_sigma_px=0.0
     )
     truth = _box(h_sub, size)
@@ -217,7 +217,7 @@ def test_refine_with_camera_blur():
             smp.phase_rad[i] = np.angle(zi).ravel()
     normals = _normals(size, slope)
     mask = np.ones((size, size), bool)
-    out, frac = refine_cliff_heights(
+    out, frac, _, _ = refine_cliff_heights(
         h, h, normals, mask, samples, pixel_size_um=S_UM, blur_sigma_px=blur
     )
     f_true = _box(upper.astype(float), size)
@@ -246,7 +246,7 @@ def test_no_change_without_cliffs():
     gy, gx = np.gradient(h.astype(float), S_UM)
     n = np.stack([-gx, -gy, -np.ones_like(gx)], -1)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    out, frac = refine_cliff_heights(
+    out, frac, _, _ = refine_cliff_heights(
         h,
         h,
         n.astype(np.float32),
