@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/reconstruct.py [--preset paper] [--seeds 0,1,2] [--noise default]
                                           [--size WxH] [--work DIR] [--no-speed]
+                                          [--no-accuracy]
 
 For each seed: simulate a scan (worker.simulate; kept in --work to be reused), then
 1. decode: the time to decode every image of the bundle to radiance (the floor);
@@ -173,6 +174,7 @@ def main(argv=None) -> int:
     p.add_argument("--size", default=None, help="WIDTHxHEIGHT (default: the preset's)")
     p.add_argument("--work", default=None, help="folder for simulated scans (kept)")
     p.add_argument("--no-speed", action="store_true", help="accuracy table only")
+    p.add_argument("--no-accuracy", action="store_true", help="speed table only")
     args = p.parse_args(argv)
     size = tuple(int(v) for v in args.size.split("x")) if args.size else None
     work = Path(args.work or tempfile.mkdtemp(prefix="bench-recon-"))
@@ -197,6 +199,8 @@ def main(argv=None) -> int:
                 f"{run['cpu']:.1f}, decode {dec_cpu:.1f} (ratio {run['cpu'] / dec_cpu:.2f}); "
                 f"peak RSS {run['maxrss_mib']:.0f} MiB"
             )
+        if args.no_accuracy:
+            continue
         rows, blur = accuracy(sim)
         per_seed[seed] = rows
         print(f"\n### Accuracy, seed {seed} (camera blur measured: σ = {blur:.3f} px)\n")

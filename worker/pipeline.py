@@ -78,7 +78,7 @@ def reconstruct_bundle(
         with open_bundle(bundle_path) as bundle:
             meas = measure_bundle(bundle, progress=report_progress)
             t0 = time.perf_counter()
-            blur_px = camera_blur_px(bundle)
+            blur_px = camera_blur_px(bundle, reference_modulation=meas.reference_modulation)
             meas.timings["camera_blur"] = time.perf_counter() - t0
     except BundleError as exc:
         raise ReconstructionError(str(exc)) from None
@@ -151,13 +151,15 @@ def _mask(meas: Measurements) -> np.ndarray:
     )
 
 
-def camera_blur_px(bundle, *, max_sets: int = 5) -> float:
+def camera_blur_px(bundle, *, max_sets: int = 5, reference_modulation: dict | None = None) -> float:
     """σ (px) of the camera's PSF measured on the reference target's fringes (0 if none).
 
     Decodes one azimuth's reference fringe sets: its finest periods, where the camera's
     modulation transfer shows, and one about 8× coarser that fixes the pattern's own
     modulation (`quality.camera_blur_sigma_px`); the median modulation of the central half
     of the frame (away from the image border) stands for each period.
+    reference_modulation: those medians as the fringe stage took them
+    (`Measurements.reference_modulation`); frames are decoded only when one is missing.
     """
     sets: dict = {}
     for f in bundle.frames:
@@ -171,7 +173,8 @@ def camera_blur_px(bundle, *, max_sets: int = 5) -> float:
     candidates = [(k, by_p) for k, by_p in candidates if len(by_p) >= 2]
     if not candidates:
         return 0.0
-    (azimuth, _), by_period = candidates[0]
+    key, by_period = candidates[0]
+    azimuth = key[0]
     s = float(bundle.manifest.camera.pixel_size_um)
     # Periods under 3 px alias (and are left out of the fit anyway).
     periods = [p for p in sorted(by_period) if p >= 3 * s]
@@ -181,17 +184,23 @@ def camera_blur_px(bundle, *, max_sets: int = 5) -> float:
     coarse = [p for p in periods if p >= 6 * periods[0] and p not in chosen]
     if coarse:
         chosen.append(min(coarse, key=lambda p: abs(np.log(p / (8 * periods[0])))))
-    frames = [
-        f for p in chosen for f in sorted(by_period[p], key=lambda f: (f.phase_deg or 0.0) % 360)
-    ]
-    stack = bundle.radiance_many(frames)
-    rows, cols = stack.shape[1:]
-    crop = stack[:, rows // 4 : rows - rows // 4, cols // 4 : cols - cols // 4]
-    mods = []
-    for i in range(len(chosen)):
-        m = four_step_phase(crop[4 * i : 4 * i + 4]).modulation
-        m = m[np.isfinite(m)]
-        mods.append(float(np.median(m)) if m.size else np.nan)
+    known = reference_modulation or {}
+    if all((*key, p) in known for p in chosen):
+        mods = [known[(*key, p)] for p in chosen]
+    else:
+        frames = [
+            f
+            for p in chosen
+            for f in sorted(by_period[p], key=lambda f: (f.phase_deg or 0.0) % 360)
+        ]
+        stack = bundle.radiance_many(frames)
+        rows, cols = stack.shape[1:]
+        crop = stack[:, rows // 4 : rows - rows // 4, cols // 4 : cols - cols // 4]
+        mods = []
+        for i in range(len(chosen)):
+            m = four_step_phase(crop[4 * i : 4 * i + 4]).modulation
+            m = m[np.isfinite(m)]
+            mods.append(float(np.median(m)) if m.size else np.nan)
     return camera_blur_sigma_px(np.array(chosen) / s, np.array(mods), azimuth_deg=azimuth)
 
 

@@ -92,3 +92,23 @@ def test_camera_blur_is_measured_on_the_reference_fringes(tmp_path, noise, low, 
     simulate_scan(out, seed=3, preset="quick", noise=noise, size=SIZE)
     with open_bundle(out / "bundle") as bundle:
         assert low <= camera_blur_px(bundle) <= high
+
+
+def test_camera_blur_reuses_the_fringe_stage_modulation(tmp_path):
+    # The fringe stage keeps the reference target's central-half modulation of its first
+    # azimuth; the blur measured from it must be the one measured by decoding the frames
+    # again (same pixels, same arithmetic), without decoding anything.
+    from worker.pipeline import camera_blur_px
+
+    simulate_scan(tmp_path, seed=3, preset="quick", noise="default", size=SIZE)
+    with open_bundle(tmp_path / "bundle") as bundle:
+        meas = measure_bundle(bundle, progress=lambda stage, fraction: None)
+        decoded = camera_blur_px(bundle)
+
+        def no_decoding(*args, **kwargs):
+            raise AssertionError("camera_blur_px decoded frames the fringe stage had measured")
+
+        bundle.radiance_many = no_decoding
+        reused = camera_blur_px(bundle, reference_modulation=meas.reference_modulation)
+    assert decoded > 0
+    assert reused == decoded

@@ -1,18 +1,22 @@
 """Measurement stages 1–5 driven from a bundle: photometric normals, colour, fringe heights.
 
-Streams the frames: each group (the photometric frames, the colour frames, one fringe set
-of four phases with its reference set) is decoded in threads while the previous group is
-processed, in float32, and dropped once reduced. Calls the pure functions of `worker.recon`.
+Streams the frames: each fringe set of four phases with its reference set is decoded in
+threads while the previous one is processed, in float32, and dropped once reduced; the
+photometric and colour frames are decoded meanwhile, in one more thread, so that neither
+core waits while the other computes. Calls the pure functions of `worker.recon`.
 """
 
 from __future__ import annotations
 
+import os
 import time
 from collections import defaultdict
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
+from worker.measure.frames import single_threaded_blas
 from worker.measure.fringe import measure_fringes
-from worker.measure.photometric import measure_color, measure_photometric
+from worker.measure.photometric import decode_with_references, measure_color, measure_photometric
 from worker.measure.result import Measurements, ReconstructionError
 
 __all__ = ["Measurements", "ReconstructionError", "measure_bundle"]
@@ -35,36 +39,52 @@ def measure_bundle(bundle, *, progress: Callable[[str, float], None]) -> Measure
         counts[f.kind if f.target == "object" else f"reference_{f.kind}"] += 1
     meas.used["frames"] = dict(counts)
     rho_ref = float(man.reference.reflectance)
-
-    t0 = time.perf_counter()
-    progress("fringe", 0.02)
     fringe = [f for f in obj if f.kind == "fringe"]
-    if fringe:
-        measure_fringes(bundle, fringe, meas, rho_ref, progress)
-    meas.timings["fringe"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    progress("photometric", 0.55)
     photo = [f for f in obj if f.kind == "photometric"]
-    if len(photo) >= 3:
-        measure_photometric(bundle, photo, meas, rho_ref)
-    elif photo:
-        meas.warnings.append(
-            f"photometric: {len(photo)} object frame(s), at least 3 are needed; normals not computed"
-        )
-    meas.timings["photometric"] = time.perf_counter() - t0
-
-    if meas.normals is None and meas.fringe_height_um is None:
-        raise ReconstructionError(
-            "bundle: nothing to reconstruct (needs ≥ 3 photometric object frames or fringe sets "
-            "with reference frames); frames found: "
-            + (", ".join(f"{k}={v}" for k, v in sorted(counts.items())) or "none")
-        )
-
-    t0 = time.perf_counter()
-    progress("color", 0.75)
     color = [f for f in obj if f.kind == "color"]
-    if color:
-        measure_color(bundle, color, meas, rho_ref)
-    meas.timings["color"] = time.perf_counter() - t0
+    workers = min(4, os.cpu_count() or 1)
+
+    with single_threaded_blas(), ThreadPoolExecutor(max_workers=1) as pool:
+        # Colour needs normals, so it is decoded only with at least 3 photometric frames.
+        photo_stacks = color_stacks = None
+        if len(photo) >= 3:
+            photo_stacks = pool.submit(decode_with_references, bundle, photo)
+            if color:
+                color_stacks = pool.submit(decode_with_references, bundle, color)
+
+        t0 = time.perf_counter()
+        progress("fringe", 0.02)
+        if fringe:
+            measure_fringes(bundle, fringe, meas, rho_ref, progress)
+        meas.timings["fringe"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        progress("photometric", 0.55)
+        if photo_stacks is not None:
+            stacks = photo_stacks.result()
+            photo_stacks = None  # the frames are dropped once reduced
+            measure_photometric(bundle, photo, meas, rho_ref, stacks=stacks, workers=workers)
+            del stacks
+        elif photo:
+            meas.warnings.append(
+                f"photometric: {len(photo)} object frame(s), at least 3 are needed; "
+                "normals not computed"
+            )
+        meas.timings["photometric"] = time.perf_counter() - t0
+
+        if meas.normals is None and meas.fringe_height_um is None:
+            raise ReconstructionError(
+                "bundle: nothing to reconstruct (needs ≥ 3 photometric object frames or fringe "
+                "sets with reference frames); frames found: "
+                + (", ".join(f"{k}={v}" for k, v in sorted(counts.items())) or "none")
+            )
+
+        t0 = time.perf_counter()
+        progress("color", 0.75)
+        if color:
+            stacks = color_stacks.result() if color_stacks is not None else None
+            color_stacks = None
+            measure_color(bundle, color, meas, rho_ref, stacks=stacks)
+            del stacks
+        meas.timings["color"] = time.perf_counter() - t0
     return meas

@@ -10,7 +10,7 @@ from worker.recon.color import rgb_reflectance
 from worker.recon.photometric import light_directions, photometric_stereo
 from worker.recon.radiometry import flat_field
 
-__all__ = ["measure_color", "measure_photometric"]
+__all__ = ["decode_with_references", "measure_color", "measure_photometric"]
 
 
 def _source_footprint(ref_stack, frames, height_um, pixel_size_um):
@@ -38,11 +38,21 @@ def _source_footprint(ref_stack, frames, height_um, pixel_size_um):
     return ref_stack
 
 
-def _shading(bundle, frames, stack, rho_ref, meas, kind):
+def decode_with_references(bundle, frames) -> tuple[np.ndarray, np.ndarray | None]:
+    """Radiance of the frames and of their reference frames (None unless every frame has one)."""
+    refs = [bundle.reference_of(f) for f in frames]
+    if not all(r is not None for r in refs):
+        return bundle.radiance_many(frames), None
+    both = bundle.radiance_many([*frames, *refs])
+    return both[: len(frames)], both[len(frames) :]
+
+
+def _shading(bundle, frames, stack, rho_ref, meas, kind, ref_stack=None):
     refs = [bundle.reference_of(f) for f in frames]
     if all(r is not None for r in refs):
         polar = np.array([f.polar_deg for f in frames], np.float64)
-        ref_stack = bundle.radiance_many(refs)
+        if ref_stack is None:
+            ref_stack = bundle.radiance_many(refs)
         if meas.rough_height_um is not None:
             ref_stack = _source_footprint(
                 ref_stack, frames, meas.rough_height_um, meas.pixel_size_um
@@ -59,14 +69,19 @@ def _shading(bundle, frames, stack, rho_ref, meas, kind):
     return (stack / np.float32(scale)).astype(np.float32)
 
 
-def measure_photometric(bundle, photo, meas, rho_ref):
-    stack = bundle.radiance_many(photo)
-    shading = _shading(bundle, photo, stack, rho_ref, meas, "photometric")
-    del stack
+def measure_photometric(bundle, photo, meas, rho_ref, *, stacks=None, workers: int = 1):
+    """Normals, albedo and residual from the photometric frames `photo`.
+
+    stacks: their radiance and their references' (`decode_with_references`), if decoded
+    already; workers: threads of the photometric fit.
+    """
+    stack, ref_stack = stacks if stacks is not None else (bundle.radiance_many(photo), None)
+    shading = _shading(bundle, photo, stack, rho_ref, meas, "photometric", ref_stack)
+    del stack, ref_stack, stacks
     az = np.array([f.azimuth_deg for f in photo])
     polar = np.array([f.polar_deg for f in photo])
     lights = light_directions(az, polar)
-    res = photometric_stereo(shading, lights)
+    res = photometric_stereo(shading, lights, workers=workers)
     meas.normals = res.normals
     meas.albedo = res.albedo
     meas.residual = res.residual
@@ -75,13 +90,15 @@ def measure_photometric(bundle, photo, meas, rho_ref):
     meas.used["photometric_azimuths_deg"] = sorted({angle_key(a) for a in az})
 
 
-def measure_color(bundle, color, meas, rho_ref):
+def measure_color(bundle, color, meas, rho_ref, *, stacks=None):
+    """Linear RGB reflectance from the colour frames `color` given the normals; stacks as
+    for `measure_photometric`."""
     if meas.normals is None:
         meas.warnings.append("color: frames ignored (no normals to divide the shading by)")
         return
-    stack = bundle.radiance_many(color)
-    shading = _shading(bundle, color, stack, rho_ref, meas, "color")
-    del stack
+    stack, ref_stack = stacks if stacks is not None else (bundle.radiance_many(color), None)
+    shading = _shading(bundle, color, stack, rho_ref, meas, "color", ref_stack)
+    del stack, ref_stack, stacks
     az = np.array([f.azimuth_deg for f in color])
     polar = np.array([f.polar_deg for f in color])
     res = rgb_reflectance(

@@ -30,6 +30,9 @@ class Measurements:
     fringe_sigma_um: np.ndarray | None = None  # predicted σ of fringe_height_um (phase noise)
     azimuths_used: np.ndarray | None = None
     modulation: np.ndarray | None = None
+    # Median B/A over the central half of the reference target, per (azimuth°, polar°, period
+    # µm) of the first fringe azimuth: what `pipeline.camera_blur_px` measures the blur on.
+    reference_modulation: dict = field(default_factory=dict)
     rough_height_um: np.ndarray | None = None  # smooth, filled: where the light came from
     cliff_samples: list = field(default_factory=list)  # per azimuth, recon.walls.CliffSamples
     used: dict = field(default_factory=dict)

@@ -16,6 +16,7 @@ normal equations in closed form.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,8 +34,9 @@ from worker.recon.photometric_fit import (
 
 __all__ = ["PhotometricResult", "light_directions", "photometric_stereo"]
 
-# About 4 M samples per (K, n) working array (16 MB float32), whatever the number of lights.
-_CHUNK_SAMPLES = 1 << 22
+# About 1 M samples per (K, n) working array (4 MB float32), whatever the number of lights:
+# small enough to stay in cache and to share out between threads.
+_CHUNK_SAMPLES = 1 << 20
 _SIGMA_SAMPLE_PIXELS = 1 << 14
 
 
@@ -111,6 +113,7 @@ def photometric_stereo(
     max_iterations: int = 6,
     highlight_rounds: int | None = None,
     highlight_cone_deg: float | None = 20.0,
+    workers: int = 1,
 ) -> PhotometricResult:
     """Robust Lambertian photometric stereo, vectorised over pixels.
 
@@ -145,6 +148,8 @@ def photometric_stereo(
         those samples and keeps the new fit where they sit significantly above it.  None:
         off.  Both highlight steps take the view direction (0, 0, −1) of the spec's
         orthographic camera.
+    workers : int
+        Threads sharing the chunks of pixels (the result does not depend on it).
 
     Returns
     -------
@@ -194,7 +199,8 @@ def photometric_stereo(
     # stray light 1 %) peeling flattened wedge walls by 0.4° on average.
     rounds = (12 if k >= _DENSE_LIGHTS else 0) if highlight_rounds is None else highlight_rounds
     chunk = max(4096, _CHUNK_SAMPLES // k)
-    for start in range(0, pix.size, chunk):
+
+    def solve(start: int) -> None:
         # Without a mask the chunks are contiguous slices: no gather copy of the stack.
         idx = (
             pix[start : start + chunk]
@@ -228,6 +234,15 @@ def photometric_stereo(
         albedo[idx] = np.where(ok, rho, np.nan)
         residual[idx] = np.where(ok, res, np.nan)
         used[idx] = np.where(ok, m, 0)
+
+    # Pixels are independent: chunks run in threads (numpy releases the GIL on the arrays).
+    starts = range(0, pix.size, chunk)
+    if workers > 1 and len(starts) > 1:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            list(pool.map(solve, starts))
+    else:
+        for start in starts:
+            solve(start)
 
     return PhotometricResult(
         normals=normals.reshape(h, w, 3),
