@@ -10,9 +10,10 @@ For each seed: simulate a scan (worker.simulate; kept in --work to be reused), t
    stage, total, and the child's peak resident memory (getrusage ru_maxrss);
 3. accuracy (worker.recon.evaluate) and fusion time (wall and CPU) of the four surfaces:
    fringe heights alone (5×5 median), normals integrated alone, the paper's fusion, the
-   default fusion (sharpened by the camera blur measured on the bundle), with the wedge
-   depth error split into its rim and bottom parts (signed means, median offset removed:
-   + is too high, so a bottom at +2 and a rim at 0 is a wedge 2 µm too shallow).
+   default fusion (sharpened by the camera blur measured on the bundle, then its cliff
+   pixels set to their area mean by `pipeline.refine_walls`), with the wedge depth error
+   split into its rim and bottom parts (signed means, median offset removed: + is too
+   high, so a bottom at +2 and a rim at 0 is a wedge 2 µm too shallow).
 With several seeds, a summary table (mean and worst over the seeds) closes the output.
 Prints markdown tables (docs/benchmarks.md keeps the last run). Model directories of the
 speed runs go to a temporary folder, never into --work (which may be a shared cache).
@@ -40,7 +41,13 @@ import numpy as np  # noqa: E402
 
 from worker.bundle import open_bundle  # noqa: E402
 from worker.measure import measure_bundle  # noqa: E402
-from worker.pipeline import _mask, camera_blur_px, reconstruct_bundle, surface_of  # noqa: E402
+from worker.pipeline import (  # noqa: E402
+    _mask,
+    camera_blur_px,
+    reconstruct_bundle,
+    refine_walls,
+    surface_of,
+)
 from worker.recon.evaluate import evaluate  # noqa: E402
 from worker.simulate import simulate_scan  # noqa: E402
 
@@ -127,6 +134,8 @@ def accuracy(sim: Path) -> tuple[list[dict], float]:
     for label, fusion, surface in SURFACES:
         t0, c0 = time.perf_counter(), time.process_time()
         h, n, _ = surface_of(meas, mask, fusion=fusion, surface=surface, blur_sigma_px=blur)
+        if (fusion, surface) == ("default", "fused"):  # as reconstruct_bundle does
+            h = refine_walls(meas, h, mask, blur_sigma_px=blur)
         dt, dc = time.perf_counter() - t0, time.process_time() - c0
         m = mask & np.isfinite(h)
         figs = evaluate(

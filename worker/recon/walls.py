@@ -412,8 +412,7 @@ def refine_cliff_heights(
     if rows.size == 0:
         return CliffRefinement(out, frac, upper, lower)
     mid = 0.5 * (h_hi + h_lo)
-    num = np.zeros(rows.size)
-    den = np.zeros(rows.size)
+    shares, weights = [], []
     width = h.shape[1]
     flat = rows * width + cols
     for smp in samples:
@@ -429,13 +428,21 @@ def refine_cliff_heights(
             lit = have & np.isfinite(a_side) & (a_side > 0.1 * top) & np.isfinite(m_hi)
             with np.errstate(invalid="ignore", divide="ignore"):
                 t = m_hi / a_side if share is not None else 1.0 - m_lo / a_side
-            w = np.where(lit, np.square(np.nan_to_num(a_side)), 0.0)
-            num += np.where(lit, w * np.nan_to_num(t), 0.0)
-            den += w
-    ok = den > 0
+            shares.append(np.where(lit, t, np.inf))
+            weights.append(np.where(lit, np.square(np.nan_to_num(a_side)), 0.0))
+    # Weighted median over the azimuths and sides: a shadow edge crossing the window makes
+    # one side's brightness at the pixel differ from its neighbours' (that share is then
+    # wrong, not noisy); the median follows the consistent majority.
+    t_all, w_all = np.stack(shares, axis=1), np.stack(weights, axis=1)
+    order = np.argsort(t_all, axis=1)
+    t_all = np.take_along_axis(t_all, order, axis=1)
+    g = _weighted_median(
+        np.where(np.isfinite(t_all), t_all, np.nan), np.take_along_axis(w_all, order, axis=1)
+    )
+    ok = np.isfinite(g)
     r_ok, c_ok = rows[ok], cols[ok]
     known = _pure_sides(base, r_ok, c_ok, mid[ok], h.shape)
-    f = deblur_fractions(num[ok] / den[ok], r_ok, c_ok, known, blur_sigma_px=blur_sigma_px)
+    f = deblur_fractions(g[ok], r_ok, c_ok, known, blur_sigma_px=blur_sigma_px)
     out[r_ok, c_ok] = (f * h_hi[ok] + (1.0 - f) * h_lo[ok]).astype(np.float32)
     frac[r_ok, c_ok] = f
     upper[r_ok, c_ok] = h_hi[ok]
@@ -471,14 +478,16 @@ def _side_amplitudes(smp, base, pure, rows, cols, mid, radius):
     a = np.full(q.shape, np.nan)
     a[take] = amp_need[np.searchsorted(need, q[take])]
     above = base.ravel()[q] > mid[:, None]
-    import warnings
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return (
-            np.nanmedian(np.where(above, a, np.nan), axis=1),
-            np.nanmedian(np.where(~above, a, np.nan), axis=1),
-        )
+    d2 = np.array([o[0] * o[0] + o[1] * o[1] for o in offs], float)
+    w = np.where(np.isfinite(a), 1.0 / np.maximum(d2, 1.0), 0.0)
+    out = []
+    for side in (above, ~above):
+        v = np.where(side & np.isfinite(a), a, np.inf)
+        order = np.argsort(v, axis=1)
+        vs = np.take_along_axis(v, order, axis=1)
+        ws = np.take_along_axis(np.where(side, w, 0.0), order, axis=1)
+        out.append(_weighted_median(np.where(np.isfinite(vs), vs, np.nan), ws))
+    return out[0], out[1]
 
 
 def _pure_sides(base, rows, cols, mid, shape):
