@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -85,26 +86,20 @@ def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int, f
     h = np.where(m, model.height_um, np.nan).astype(np.float32)
     n = np.where(m[..., None], model.normals, np.nan).astype(np.float32)
     ok = m & np.isfinite(h)
-    _npy(tmp / "height.npy", h)
-    _npy(tmp / "normals.npy", n)
     albedo = np.asarray(model.albedo_srgb8, np.uint8)
-    _png(tmp / "albedo.png", albedo)
-    _png(tmp / "mask.png", np.where(m, 255, 0).astype(np.uint8))
-    rgb = np.where(np.isfinite(n), np.clip(np.rint((n + 1.0) * 127.5), 0, 255), 0).astype(np.uint8)
-    _png(tmp / "normals.png", rgb)
-
-    mesh = grid_mesh(h, ok, pixel_size_um=model.pixel_size_um)
-    vn = n[mesh.rows, mesh.cols]
-    vn = np.where(np.isfinite(vn), vn, np.array([0, 0, -1], np.float32))
-    write_new_file(
-        tmp / "mesh.ply",
-        ply_bytes(
-            mesh.vertices_mm, mesh.faces, normals=vn, colors_rgb8=albedo[mesh.rows, mesh.cols]
-        ),
-    )
-    glb, info = glb_bytes(
-        h, ok, n, albedo, pixel_size_um=model.pixel_size_um, max_triangles=max_glb_triangles
-    )
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        # model.glb (full-resolution textures) is the largest part: it is built beside the rest.
+        glb_job = pool.submit(
+            glb_bytes,
+            h,
+            ok,
+            n,
+            albedo,
+            pixel_size_um=model.pixel_size_um,
+            max_triangles=max_glb_triangles,
+        )
+        mesh = _write_grids(tmp, model, h, n, ok, albedo)
+        glb, info = glb_job.result()
     write_new_file(tmp / "model.glb", glb)
     (tmp / "quality").mkdir()
     for name, arr in model.quality.items():
@@ -121,3 +116,25 @@ def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int, f
         report = finish(report)
     write_new_file(tmp / "report.json", json.dumps(report, indent=1, allow_nan=False).encode())
     return report
+
+
+def _write_grids(tmp: Path, model: ModelArrays, h, n, ok, albedo):
+    """height.npy, normals.npy, the PNGs and mesh.ply; returns the full-resolution mesh."""
+    m = np.asarray(model.mask, bool)
+    _npy(tmp / "height.npy", h)
+    _npy(tmp / "normals.npy", n)
+    _png(tmp / "albedo.png", albedo)
+    _png(tmp / "mask.png", np.where(m, 255, 0).astype(np.uint8))
+    rgb = np.where(np.isfinite(n), np.clip(np.rint((n + 1.0) * 127.5), 0, 255), 0).astype(np.uint8)
+    _png(tmp / "normals.png", rgb)
+
+    mesh = grid_mesh(h, ok, pixel_size_um=model.pixel_size_um)
+    vn = n[mesh.rows, mesh.cols]
+    vn = np.where(np.isfinite(vn), vn, np.array([0, 0, -1], np.float32))
+    write_new_file(
+        tmp / "mesh.ply",
+        ply_bytes(
+            mesh.vertices_mm, mesh.faces, normals=vn, colors_rgb8=albedo[mesh.rows, mesh.cols]
+        ),
+    )
+    return mesh

@@ -76,7 +76,7 @@ def reconstruct_bundle(
     t_start = time.perf_counter()
     try:
         with open_bundle(bundle_path) as bundle:
-            meas = measure_bundle(bundle, progress=report_progress)
+            meas = measure_bundle(bundle, progress=report_progress, color_in_background=True)
             t0 = time.perf_counter()
             blur_px = camera_blur_px(bundle, reference_modulation=meas.reference_modulation)
             meas.timings["camera_blur"] = time.perf_counter() - t0
@@ -107,6 +107,9 @@ def reconstruct_bundle(
         height = refine_walls(meas, height, mask, blur_sigma_px=blur_px)
         timings["walls"] = time.perf_counter() - t0
     mask &= np.isfinite(height)
+    meas.finish()  # the colour stage ran in the background meanwhile
+    if "color" in meas.timings:
+        timings["color"] = meas.timings["color"]
 
     quality = _quality_maps(meas, height, mask)
     report = _report(meas, mask, quality, fusion=fusion, surface=used_surface)

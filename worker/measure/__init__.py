@@ -22,8 +22,16 @@ from worker.measure.result import Measurements, ReconstructionError
 __all__ = ["Measurements", "ReconstructionError", "measure_bundle"]
 
 
-def measure_bundle(bundle, *, progress: Callable[[str, float], None]) -> Measurements:
-    """Run stages 1–5 on an open `worker.bundle.Bundle`."""
+def measure_bundle(
+    bundle, *, progress: Callable[[str, float], None], color_in_background: bool = False
+) -> Measurements:
+    """Run stages 1–5 on an open `worker.bundle.Bundle`.
+
+    color_in_background: the colour stage, whose only product is the albedo texture, runs
+    in a thread on frames decoded already, and may outlive the call (and the open bundle);
+    `Measurements.finish()` waits for it.  Meanwhile its fields (rgb_linear, its warnings
+    and `used` entries) are not there yet.
+    """
     man = bundle.manifest
     cam = man.camera
     meas = Measurements(pixel_size_um=float(cam.pixel_size_um), shape=(cam.height, cam.width))
@@ -44,6 +52,7 @@ def measure_bundle(bundle, *, progress: Callable[[str, float], None]) -> Measure
     color = [f for f in obj if f.kind == "color"]
     workers = min(4, os.cpu_count() or 1)
 
+    background = ThreadPoolExecutor(max_workers=1) if color_in_background else None
     with single_threaded_blas(), ThreadPoolExecutor(max_workers=1) as pool:
         # Colour needs normals, so it is decoded only with at least 3 photometric frames.
         photo_stacks = color_stacks = None
@@ -79,12 +88,23 @@ def measure_bundle(bundle, *, progress: Callable[[str, float], None]) -> Measure
                 + (", ".join(f"{k}={v}" for k, v in sorted(counts.items())) or "none")
             )
 
-        t0 = time.perf_counter()
         progress("color", 0.75)
-        if color:
+        if color and background is not None and color_stacks is not None:
+            meas.pending.append(
+                background.submit(_color, bundle, color, meas, rho_ref, color_stacks.result())
+            )
+        elif color:
             stacks = color_stacks.result() if color_stacks is not None else None
-            color_stacks = None
-            measure_color(bundle, color, meas, rho_ref, stacks=stacks)
-            del stacks
-        meas.timings["color"] = time.perf_counter() - t0
+            _color(bundle, color, meas, rho_ref, stacks)
+        color_stacks = None
+    if background is not None:
+        background.shutdown(wait=False)
     return meas
+
+
+def _color(bundle, color, meas, rho_ref, stacks) -> None:
+    # No BLAS limit here: in the background it would outlive measure_bundle's and reset it
+    # when done; the colour stage calls no BLAS (recon.color).
+    t0 = time.perf_counter()
+    measure_color(bundle, color, meas, rho_ref, stacks=stacks)
+    meas.timings["color"] = time.perf_counter() - t0

@@ -39,3 +39,11 @@ class Measurements:
     warnings: list[str] = field(default_factory=list)
     timings: dict = field(default_factory=dict)
     scan_info: dict = field(default_factory=dict)
+    # Stages still running in the background (`measure_bundle(color_in_background=True)`).
+    pending: list = field(default_factory=list)
+
+    def finish(self) -> Measurements:
+        """Wait for the stages still running in the background (re-raising their errors)."""
+        while self.pending:
+            self.pending.pop(0).result()
+        return self

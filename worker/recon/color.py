@@ -132,12 +132,17 @@ def rgb_reflectance(
 
     rgb = np.full((3, h * w), np.nan, dtype=np.float32)
     used = np.zeros((3, h * w), dtype=np.int16)
-    nf = n.reshape(-1, 3)
+    nt = np.ascontiguousarray(n.reshape(-1, 3).T)
     for c in range(3):
         sel = np.flatnonzero(ch == c)
         if sel.size == 0:
             continue
-        cos = lights[sel] @ nf.T  # (k_c, N)
+        # n·l as three multiply-adds, (k_c, N): as fast as BLAS, whose threads would spin
+        # beside the stages that run concurrently with this one.
+        ls = lights[sel]
+        cos = ls[:, :1] * nt[0]
+        cos += ls[:, 1:2] * nt[1]
+        cos += ls[:, 2:3] * nt[2]
         sc = s[sel].reshape(sel.size, -1)
         with np.errstate(divide="ignore", invalid="ignore"):
             est = np.where(cos >= min_cos, sc / cos, np.nan)

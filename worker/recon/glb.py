@@ -18,7 +18,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pygltflib
-from scipy import ndimage
 
 from worker.recon.mesh import grid_mesh, vertex_normals
 
@@ -36,12 +35,20 @@ def decimation_step(shape: tuple[int, int], max_triangles: int) -> int:
 
 def _frame(normal):
     """Unit T (image +x made orthogonal to N) and B = N × T for (..., 3) normals N."""
-    x = np.zeros_like(normal)
-    x[..., 0] = 1.0
-    t = x - np.sum(x * normal, axis=-1, keepdims=True) * normal
+    t = normal * -normal[..., :1]  # x − (x·N)·N with x = (1, 0, 0)
+    t[..., 0] += 1.0
     t /= np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), 1e-12)
     b = np.cross(normal, t)
     return t, b
+
+
+def _lerp_index(n_out: int, samples: np.ndarray):
+    """For linear interpolation onto pixels 0 … n_out−1 of values given at the increasing
+    pixel positions `samples`: left and right sample index per pixel, weight of the right."""
+    pos = np.interp(np.arange(n_out), samples, np.arange(len(samples)))
+    left = np.clip(np.floor(pos).astype(np.intp), 0, max(len(samples) - 2, 0))
+    right = np.minimum(left + 1, len(samples) - 1)
+    return left, right, (pos - left).astype(np.float32)
 
 
 def tangent_space_normals(
@@ -52,23 +59,26 @@ def tangent_space_normals(
     normals: (H, W, 3) unit object-space normals (NaN allowed → flat (0, 0, 1)).
     mesh_normal_grid: (len(rows), len(cols), 3) vertex normals of the decimated grid at the
     sample pixels rows × cols (increasing). Returns (H, W, 3) float32 tangent-space normals.
+    The mesh normal at a pixel is the bilinear interpolation of the grid's, done one axis
+    after the other, in float32 (the texture keeps 8 bits).
     """
     h, w = normals.shape[:2]
-    ri = np.interp(np.arange(h), rows, np.arange(len(rows)))
-    ci = np.interp(np.arange(w), cols, np.arange(len(cols)))
-    coords = np.meshgrid(ri, ci, indexing="ij")
-    mesh_n = np.stack(
-        [ndimage.map_coordinates(mesh_normal_grid[..., k], coords, order=1) for k in range(3)],
-        axis=-1,
-    )
-    mesh_n /= np.maximum(np.linalg.norm(mesh_n, axis=-1, keepdims=True), 1e-12)
+    grid = np.asarray(mesh_normal_grid, np.float32)
+    r0, r1, fr = _lerp_index(h, rows)
+    c0, c1, fc = _lerp_index(w, cols)
+    fr = fr[:, None, None]
+    by_row = grid[r0] * (1 - fr) + grid[r1] * fr
+    fc = fc[None, :, None]
+    mesh_n = by_row[:, c0] * (1 - fc)
+    mesh_n += by_row[:, c1] * fc
+    mesh_n /= np.maximum(np.linalg.norm(mesh_n, axis=-1, keepdims=True), np.float32(1e-12))
     t, b = _frame(mesh_n)
-    n = np.asarray(normals, np.float64)
+    n = np.asarray(normals, np.float32)
     ok = np.all(np.isfinite(n), axis=-1)
     n = np.where(ok[..., None], n, mesh_n)
-    out = np.stack([np.sum(n * t, -1), np.sum(n * b, -1), np.sum(n * mesh_n, -1)], axis=-1).astype(
-        np.float32
-    )
+    out = np.empty((h, w, 3), np.float32)
+    for k, axis in enumerate((t, b, mesh_n)):
+        np.einsum("hwc,hwc->hw", n, axis, out=out[..., k])
     return out
 
 
