@@ -319,15 +319,16 @@ def deblur_fractions(
     of a Gaussian PSF of σ px (its MTF agrees to order 1/P² with exp(−2π²σ²/P²), which is
     what `quality.camera_blur_sigma_px` measures). ``blurred`` (N,): g at the pixels;
     ``known`` (H, W): F of their other 8-neighbours (0 or 1 on pure pixels; NaN counts ½).
-    Projected Jacobi: F = clip((g − Σ_{q≠p} K_q·F_q)/K_0, 0, 1), damped by ½, which keeps it
-    stable for σ up to ~0.7 px (centre weight (1 − σ²)² ≥ 0.26). Returns (N,) float64
-    (clip(g, 0, 1) where σ = 0).
+    Projected Jacobi: F ← ½·F + ½·clip((g − Σ_{q≠p} K_q·F_q)/K_0, 0, 1). The eigenvalues of
+    K/K_0 lie in (0, 1/K_0], so the damped step contracts while 1/K_0 < 4: the side
+    weight is capped at 0.2 (K_0 ≥ 0.36; σ ≤ 0.63 px is modelled exactly, a wider PSF is
+    deblurred as one of 0.63 px). Returns (N,) float64 (clip(g, 0, 1) where σ = 0).
     """
     g = np.asarray(blurred, np.float64)
     f = np.clip(g, 0.0, 1.0)
     if blur_sigma_px <= 0 or g.size == 0:
         return f
-    a = min(0.5 * blur_sigma_px**2, 0.25)
+    a = min(0.5 * blur_sigma_px**2, 0.2)
     k1 = np.array([a, 1.0 - 2.0 * a, a])
     shape = known.shape
     index = np.full(shape, -1, np.intp)
