@@ -26,7 +26,9 @@ from worker.recon.fusion_paper import fuse_paper
 from worker.recon.height import fill_holes
 from worker.recon.integrate import integrate_normals
 from worker.recon.mask import tablet_mask
+from worker.recon.normal_bias import correct_normal_bias
 from worker.recon.quality import (
+    NORMAL_FLOOR_RAD,
     camera_blur_sigma_px,
     crease_sigma_um,
     fringe_sigma_um,
@@ -249,8 +251,17 @@ def surface_of(
             height_sigma_um=sigma_f,
         )
         return h, _unit_normals(meas.normals, h, mask, s), "paper"
-    h = fuse_default(
+    # The normals' low-frequency bias is taken out by the fringe heights first.
+    normals = correct_normal_bias(
         meas.normals,
+        meas.fringe_height_um,
+        pixel_size_um=s,
+        mask=mask,
+        height_sigma_um=sig_f,
+        floor_rad=NORMAL_FLOOR_RAD,
+    )
+    h = fuse_default(
+        normals,
         meas.fringe_height_um,
         pixel_size_um=s,
         mask=mask,

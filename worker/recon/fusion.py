@@ -45,7 +45,13 @@ from worker.recon.integrate import (
     solve_screened_poisson,
 )
 
-__all__ = ["cell_average_targets_um", "fuse_default", "sharpen_heights", "variance_factors"]
+__all__ = [
+    "cell_average_targets_um",
+    "fuse_default",
+    "sharpen_heights",
+    "transverse_mean_slopes",
+    "variance_factors",
+]
 
 
 def fuse_default(
@@ -98,20 +104,37 @@ def fuse_default(
     gx, gy = slopes_from_normals(n[crop], min_abs_nz=0.05)
     nz = np.abs(n[crop][..., 2].astype(np.float32))
     has_slope = m_c & np.isfinite(gx) & np.isfinite(gy) & np.isfinite(sig_n[crop])
+    # Isotropic angular noise σ on a normal of slope g gives the slopes the covariance
+    # σ²(1 + |g|²)(I + g gᵀ): (1 + |g|²)² = 1/n_z⁴ along the tilt, 1/n_z² across it.
     with np.errstate(divide="ignore", invalid="ignore"):
-        step_sigma = s * sig_n[crop] / np.square(nz)
-        w_pix = np.where(has_slope, 1.0 / np.square(step_sigma), 0).astype(np.float32)
+        gx2, gy2 = np.square(np.nan_to_num(gx)), np.square(np.nan_to_num(gy))
+        sig_x = s * sig_n[crop] * np.sqrt((1 + gx2 + gy2) * (1 + gx2))
+        sig_y = s * sig_n[crop] * np.sqrt((1 + gx2 + gy2) * (1 + gy2))
+        step_sigma = s * sig_n[crop] / np.square(nz)  # along the tilt: the break test's scale
+        w_px = np.where(has_slope, 1.0 / np.square(sig_x), 0).astype(np.float32)
+        w_py = np.where(has_slope, 1.0 / np.square(sig_y), 0).astype(np.float32)
     # An edge's target is the mean of two slopes; with independent errors its inverse variance
     # is twice the harmonic mean of the pixel weights, but neighbouring normals share errors
     # (smooth shading, interreflections), so the conservative harmonic mean is used. It is 0
     # when either end has no slope.
-    wx = _edge_weight(w_pix[:, 1:], w_pix[:, :-1])
-    wy = _edge_weight(w_pix[1:, :], w_pix[:-1, :])
+    wx = _edge_weight(w_px[:, 1:], w_px[:, :-1])
+    wy = _edge_weight(w_py[1:, :], w_py[:-1, :])
     tx, ty = cell_average_targets_um(gx, gy, pixel_size_um=s)
+    # The final solve's targets are also averaged across their edges where the slopes allow
+    # it; the weights and the variance factors stay those of the single-pixel targets (the
+    # averaged targets share pixels between neighbouring edges, which the factors, estimated
+    # as if edges were independent, would take for extra precision).
+    ax, ay = transverse_mean_slopes(
+        np.where(has_slope, gx, np.nan), np.where(has_slope, gy, np.nan)
+    )
+    sx, sy = cell_average_targets_um(ax, ay, pixel_size_um=s)
     # Mask pixels without a normal are bridged by a faint membrane (flat target) so that the
     # ones without a fringe height either follow their neighbours instead of floating free.
-    wx, tx = _bridge(wx, tx, m_c[:, 1:] & m_c[:, :-1])
-    wy, ty = _bridge(wy, ty, m_c[1:, :] & m_c[:-1, :])
+    wx0, wy0 = wx, wy
+    wx, tx = _bridge(wx0, tx, m_c[:, 1:] & m_c[:, :-1])
+    wy, ty = _bridge(wy0, ty, m_c[1:, :] & m_c[:-1, :])
+    sx = _bridge(wx0, sx, m_c[:, 1:] & m_c[:, :-1])[1]
+    sy = _bridge(wy0, sy, m_c[1:, :] & m_c[:-1, :])[1]
 
     f_c = f[crop]
     has_f = m_c & np.isfinite(f_c) & np.isfinite(sig_f[crop])
@@ -157,7 +180,7 @@ def fuse_default(
         sig_f[crop] *= np.sqrt(ff)
         if not robust_pass:
             h = solve_screened_poisson(
-                tx, ty, wx, wy, data_um=f_c, data_weight=lam, x0_um=h, rtol=rtol
+                sx, sy, wx, wy, data_um=f_c, data_weight=lam, x0_um=h, rtol=rtol
             ).height_um
     if robust_pass:
         k = np.float32(outlier_sigmas)
@@ -170,8 +193,8 @@ def fuse_default(
             rx = np.where(cut_x, 1 / (1 + np.square(np.nan_to_num(zx))), 1)
             ry = np.where(cut_y, 1 / (1 + np.square(np.nan_to_num(zy))), 1)
             sol = solve_screened_poisson(
-                tx,
-                ty,
+                sx,
+                sy,
                 (wx * rx).astype(np.float32),
                 (wy * ry).astype(np.float32),
                 data_um=f_c,
@@ -314,6 +337,71 @@ def cell_average_targets_um(
     tx[:, 1:-1] -= _garrote(cx, significance)
     ty[1:-1] -= _garrote(cy, significance)
     return tx, ty
+
+
+def transverse_mean_slopes(gx: np.ndarray, gy: np.ndarray, *, significance: float = 3.0):
+    """Slopes for the edge targets, low-passed across the edge above half the Nyquist frequency.
+
+    An x-edge's step integrates ∂h/∂x over the width of its pixels; the pixels above and
+    below measure the same slope with their own noise. Across the edge the slopes are
+    filtered by the maximally flat half-band filter [−1 4 10 4 −1]/16, whose response
+    (10 + 8cos k − 2cos 2k)/16 is 1 to fourth order at k = 0 (exact for a cubic across the
+    edge — no ∇² blur, unlike a [1 2 1]/4 mean), 3/4 at half the Nyquist frequency and 0 at
+    it. Near the Nyquist frequency the camera (pixel box and PSF) has left little of the
+    surface, while the normals' white noise is flat up to it: the filter removes the upper
+    half of that band, about half of the noise variance (Σk² = 0.52), and keeps the
+    wedges. The Fried (1977) cell model averages over the cell's two rows for the same
+    reason, with a [1 1]/2 that also blurs. A deviation g − ḡ that stands out of the noise (a
+    feature narrower than the filter, along the edge) keeps its non-negative garrote share
+    max(0, 1 − (k·σ_d/d)²) (Breiman 1995; σ_d = 1.4826·MAD of d, k = `significance`). A
+    missing neighbour counts as the pixel itself.
+
+    gx, gy: (H, W) slopes, NaN where none. Returns (gx filtered along columns, gy filtered
+    along rows), float32, NaN where the input is.
+    """
+
+    def across(g, axis):
+        g = np.asarray(g, np.float32)
+        smooth = g.copy()
+        for shift, tap in _HALF_BAND:
+            nb = _shifted(g, shift, axis)
+            smooth += np.float32(tap) * np.where(np.isfinite(nb), nb - g, 0)
+        dev = g - smooth
+        kept = _garrote_factor(dev, significance) * np.nan_to_num(dev)
+        return (smooth + kept).astype(np.float32)
+
+    with np.errstate(invalid="ignore"):
+        return across(gx, 0), across(gy, 1)
+
+
+# Off-centre taps of [−1 4 10 4 −1]/16 as (offset, weight).
+_HALF_BAND = ((-2, -1 / 16), (-1, 4 / 16), (1, 4 / 16), (2, -1 / 16))
+
+
+def _shifted(a, shift, axis):
+    """a moved by `shift` along `axis` (out[i] = a[i + shift]), NaN where it runs out."""
+    out = np.full_like(a, np.nan)
+    n = a.shape[axis]
+    src = [slice(None)] * a.ndim
+    dst = [slice(None)] * a.ndim
+    if shift >= 0:
+        src[axis], dst[axis] = slice(shift, n), slice(0, n - shift)
+    else:
+        src[axis], dst[axis] = slice(0, n + shift), slice(-shift, n)
+    out[tuple(dst)] = a[tuple(src)]
+    return out
+
+
+def _garrote_factor(c, significance):
+    """max(0, 1 − (k·σ/c)²), σ the robust spread of c; 0 where c is NaN."""
+    finite = c[np.isfinite(c)][::3]
+    if finite.size < 25:
+        return np.zeros_like(c)
+    noise = 1.4826 * float(np.median(np.abs(finite - np.median(finite))))
+    floor = np.float32(np.square(significance * noise))
+    c2 = np.square(np.nan_to_num(c, nan=0.0, posinf=0.0, neginf=0.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(c2 > floor, 1 - floor / c2, np.float32(0)).astype(np.float32)
 
 
 def _garrote(c, significance):

@@ -15,7 +15,11 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["fringe_sigma_um", "normal_sigma_rad"]
+__all__ = ["NORMAL_FLOOR_RAD", "fringe_sigma_um", "normal_sigma_rad"]
+
+# What a photometric normal's residual cannot show (light calibration, non-Lambertian bias):
+# the floor of its predicted angular noise.
+NORMAL_FLOOR_RAD = 0.003
 
 
 def normal_sigma_rad(
@@ -23,7 +27,7 @@ def normal_sigma_rad(
     lights_used: np.ndarray,
     *,
     polar_deg: float,
-    floor_rad: float = 0.003,
+    floor_rad: float = NORMAL_FLOOR_RAD,
 ) -> np.ndarray:
     """(H, W) float32 angular noise of photometric normals (rad); inf where not solved.
 

@@ -453,3 +453,44 @@ def test_pixels_straddling_a_cliff_do_not_carry_its_pull():
     assert np.max(np.abs(err - np.median(err))) < 1.0
     on = mask[:, wall]
     assert np.max(np.abs((got - h)[on, wall] - np.median(err))) < 150.0
+
+
+def test_half_band_edge_slopes_keep_cubics_and_remove_the_nyquist_band():
+    # [−1 4 10 4 −1]/16 across the edge: response 1 to fourth order at k = 0 (a cubic
+    # passes exactly) and 0 at the Nyquist frequency (an alternating pattern, which is all
+    # within the deviations' own spread and so not kept by the garrote, is removed).
+    from worker.recon.fusion import transverse_mean_slopes
+
+    rows, cols = 40, 30
+    y = np.arange(rows, dtype=np.float64)[:, None] * np.ones((1, cols))
+    cubic = 0.1 + 0.02 * (y - 20) - 1e-3 * (y - 20) ** 2 + 2e-5 * (y - 20) ** 3
+    alternating = 0.01 * (-1.0) ** y
+    gx = (cubic + alternating).astype(np.float32)
+    gy = (cubic + alternating).T.astype(np.float32)  # the same, varying along columns
+    ax, ay = transverse_mean_slopes(gx, gy)
+    np.testing.assert_allclose(ax[2:-2], cubic[2:-2], atol=2e-6)
+    np.testing.assert_allclose(ay[:, 2:-2], cubic.T[:, 2:-2], atol=2e-6)
+
+
+def test_half_band_edge_slopes_halve_white_noise_and_keep_a_narrow_ridge():
+    # White noise: the filter keeps Σk² = 134/256 = 0.523 of its variance (the garrote
+    # keeps the few deviations beyond 3σ_d: +0.3 %); 160² samples fix the ratio to ~1 %.
+    # A ridge one row wide and 20σ high along the x-edges deviates by 0.375·20σ from its
+    # filtered value, far beyond 3σ_d = 3·0.523σ: the garrote keeps 1 − (1.57/7.5)² = 96 % of
+    # it, so the row keeps > 95 % of its height (10/16 + 0.96·6/16 = 0.98).
+    from worker.recon.fusion import transverse_mean_slopes
+
+    rng = np.random.default_rng(5)
+    g = rng.normal(0, 1, (160, 160)).astype(np.float32)
+    ax, _ = transverse_mean_slopes(g, g)
+    ratio = float(np.var(ax[3:-3]) / np.var(g[3:-3]))
+    assert 0.50 < ratio < 0.56, ratio
+    ridge = g.copy()
+    ridge[80] += 20
+    ax, _ = transverse_mean_slopes(ridge, ridge)
+    assert float(np.mean(ax[80] - g[80] * 10 / 16)) > 0.95 * 20
+    assert abs(float(np.mean(ax[79]))) < 0.1 * 20
+    nan = g.copy()
+    nan[10:20, 10:20] = np.nan
+    ax, ay = transverse_mean_slopes(nan, nan)
+    assert np.array_equal(np.isnan(ax), np.isnan(nan)) and np.isfinite(ax[9, 15])
