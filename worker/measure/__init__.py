@@ -64,7 +64,7 @@ def measure_bundle(
         t0 = time.perf_counter()
         progress("fringe", 0.02)
         if fringe:
-            measure_fringes(bundle, fringe, meas, rho_ref, progress)
+            measure_fringes(bundle, fringe, meas, rho_ref, progress, workers=workers)
         meas.timings["fringe"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()

@@ -50,7 +50,7 @@ def _fringe_sets(bundle, fringe, meas):
     return out
 
 
-def measure_fringes(bundle, fringe, meas, rho_ref, progress):
+def measure_fringes(bundle, fringe, meas, rho_ref, progress, *, workers: int = 1):
     sets = _fringe_sets(bundle, fringe, meas)
     if not sets:
         meas.warnings.append("fringe: no usable fringe set; heights not computed")
@@ -70,8 +70,10 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress):
     blur_key = next(iter(sets))
     for i, stack in enumerate(prefetch(bundle, groups)):
         key, level = index[i]
-        obj_phase = four_step_phase(stack[:4])
-        ref_phase = four_step_phase(stack[4:])
+        # Modulation is kept for the finest object set and the camera blur's reference sets.
+        last = level == len(sets[key]) - 1
+        obj_phase = four_step_phase(stack[:4], modulation=last)
+        ref_phase = four_step_phase(stack[4:], modulation=key == blur_key)
         amps[key].append((obj_phase.amplitude, ref_phase.amplitude))
         if level == 0:
             shape = (len(sets[key]), *obj_phase.phase_rad.shape)
@@ -99,7 +101,7 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress):
                 )
             periods = np.array([p for p, _, _ in levels])
             wrapped_az = wrapped.pop(key)
-            un = noise_aware_unwrap(wrapped_az, noise.pop(key), periods)
+            un = noise_aware_unwrap(wrapped_az, noise.pop(key), periods, workers=workers)
             h = height_from_phase(un.dpsi_rad, period_um=float(periods[-1]), polar_deg=key[1])
             sigma_h = np.abs(
                 height_from_phase(un.sigma_rad, period_um=float(periods[-1]), polar_deg=key[1])
@@ -133,7 +135,7 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress):
             period = sets[key][level][0]
             meas.reference_modulation[(*key, period)] = _central_median(ref_phase.modulation)
         progress("fringe", 0.02 + 0.5 * (i + 1) / total)
-    comb = consensus_azimuths(np.stack(heights), np.stack(sigmas))
+    comb = consensus_azimuths(np.stack(heights), np.stack(sigmas), workers=workers)
     meas.fringe_height_um = comb.height_um
     meas.fringe_spread_um = comb.spread_um
     meas.fringe_sigma_um = comb.sigma_um

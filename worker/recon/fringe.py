@@ -39,7 +39,8 @@ class FringePhase:
 
     phase_rad : (H, W) float32, ψ wrapped to (−π, π] (argument of the pattern at δ = 0).
     modulation : (H, W) float32, B/A (≈ m where the model holds; low in shadows, saturation,
-        blur or where interreflections add unmodulated light).  NaN where A ≤ 0.
+        blur or where interreflections add unmodulated light).  NaN where A ≤ 0; None when
+        not asked for.
     amplitude : (H, W) float32, B in the units of the frames.
     mean : (H, W) float32, A, the mean of the four frames.
     residual : (H, W) float32, ½·((I_0 + I_180) − (I_90 + I_270)): zero for the model, so it
@@ -102,7 +103,7 @@ def _frames(name: str, frames: np.ndarray) -> np.ndarray:
     return arr.astype(np.float32, copy=False)
 
 
-def four_step_phase(frames: np.ndarray) -> FringePhase:
+def four_step_phase(frames: np.ndarray, *, modulation: bool = True) -> FringePhase:
     """Standard 4-step phase shifting (δ = 0, 90, 180, 270°).
 
     With I_δ = A + B cos(ψ + δ): I_0 − I_180 = 2B cos ψ and I_270 − I_90 = 2B sin ψ, so
@@ -110,7 +111,8 @@ def four_step_phase(frames: np.ndarray) -> FringePhase:
     A = mean of the four frames.  Phase noise: σ_ψ ≈ σ_I/(√2·B) for independent frames.
 
     frames : (4, H, W) array in the order δ = 0, 90, 180, 270°, linear radiance (not
-    flat-fielded: the phase does not depend on the scale).
+    flat-fielded: the phase does not depend on the scale).  modulation: False leaves B/A
+    out (None), for callers that use it for some sets only.
     """
     i0, i90, i180, i270 = _frames("frames", frames)
     s = i270 - i90
@@ -128,9 +130,11 @@ def four_step_phase(frames: np.ndarray) -> FringePhase:
     mean *= np.float32(0.25)
     even -= odd
     even *= np.float32(0.5)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        mod = np.divide(amp, mean)
-    mod[~(mean > 0)] = np.nan
+    mod = None
+    if modulation:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mod = np.divide(amp, mean)
+        mod[~(mean > 0)] = np.nan
     return FringePhase(phase_rad=phase, modulation=mod, amplitude=amp, mean=mean, residual=even)
 
 

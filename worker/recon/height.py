@@ -16,6 +16,7 @@ pixel seen from at least one azimuth with good modulation is then measured direc
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -172,7 +173,7 @@ def _noise_scale(h: np.ndarray, s: np.ndarray, stride: int = 3) -> float:
 
 
 def consensus_azimuths(
-    height_um: np.ndarray, sigma_um: np.ndarray, *, k_sigma: float = 4.0
+    height_um: np.ndarray, sigma_um: np.ndarray, *, k_sigma: float = 4.0, workers: int = 1
 ) -> CombinedHeight:
     """Combine the heights of A azimuths by the largest mutually consistent group.
 
@@ -190,6 +191,7 @@ def consensus_azimuths(
     height_um, sigma_um : (A, H, W); NaN height or non-finite σ: azimuth absent there.
     Returns :class:`CombinedHeight`; ``spread_um`` is the weighted SD of the inliers,
     ``sigma_um`` the σ of their mean, (Σ 1/σ_a²)^−½ with the scaled σ.
+    workers: threads sharing the blocks of pixels (the result does not depend on it).
     """
     h = np.asarray(height_um, dtype=np.float32)
     s = np.asarray(sigma_um, dtype=np.float32)
@@ -205,9 +207,42 @@ def consensus_azimuths(
         valid = np.isfinite(hf) & np.isfinite(s.reshape(a, -1)) & (s.reshape(a, -1) > 0)
     sf = np.where(valid, s.reshape(a, -1), np.float32(np.inf))
     sf = sf * np.float32(_noise_scale(np.where(valid, hf, np.nan), sf))
+    k2 = np.float32(k_sigma * k_sigma)
+    n_pix = hf.shape[1]
+    mean = np.empty(n_pix, np.float32)
+    spread = np.empty(n_pix, np.float32)
+    used = np.empty(n_pix, np.int16)
+    sigma = np.empty(n_pix, np.float32)
+
+    def combine(start: int) -> None:
+        sl = slice(start, min(n_pix, start + _CONSENSUS_BLOCK))
+        out = _consensus_block(hf[:, sl], sf[:, sl], valid[:, sl], k2)
+        mean[sl], spread[sl], used[sl], sigma[sl] = out
+
+    # Pixels are independent: blocks that fit the CPU cache, shared out between threads.
+    starts = range(0, n_pix, _CONSENSUS_BLOCK)
+    if workers > 1:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            list(pool.map(combine, starts))
+    else:
+        for start in starts:
+            combine(start)
+    return CombinedHeight(
+        height_um=mean.reshape(rows, cols),
+        spread_um=spread.reshape(rows, cols),
+        azimuths_used=used.reshape(rows, cols),
+        sigma_um=sigma.reshape(rows, cols),
+    )
+
+
+_CONSENSUS_BLOCK = 1 << 16
+
+
+def _consensus_block(hf, sf, valid, k2):
+    """:func:`consensus_azimuths` on (A, n) pixels; returns mean, spread, used, sigma (n,)."""
+    a = hf.shape[0]
     hv = np.where(valid, hf, np.float32(0))
     wv = np.where(valid, np.float32(1) / np.square(sf), np.float32(0))
-    k2 = np.float32(k_sigma * k_sigma)
     best_n = np.zeros(hf.shape[1], dtype=np.int16)
     best_w = np.zeros(hf.shape[1], dtype=np.float32)
     best = np.full(hf.shape[1], -1, dtype=np.int16)
@@ -234,13 +269,11 @@ def consensus_azimuths(
         mean = (wi * hv).sum(axis=0) / wsum
         var = (wi * np.square(hv - mean[None])).sum(axis=0) / wsum
         sigma = np.where(solved, np.float32(1) / np.sqrt(wsum), np.float32(np.nan))
-    return CombinedHeight(
-        height_um=np.where(solved, mean, np.nan).astype(np.float32).reshape(rows, cols),
-        spread_um=np.where(solved, np.sqrt(np.maximum(var, 0.0)), np.nan)
-        .astype(np.float32)
-        .reshape(rows, cols),
-        azimuths_used=inl.sum(axis=0).astype(np.int16).reshape(rows, cols),
-        sigma_um=sigma.astype(np.float32).reshape(rows, cols),
+    return (
+        np.where(solved, mean, np.nan).astype(np.float32),
+        np.where(solved, np.sqrt(np.maximum(var, 0.0)), np.nan).astype(np.float32),
+        inl.sum(axis=0).astype(np.int16),
+        sigma.astype(np.float32),
     )
 
 

@@ -13,6 +13,7 @@ paper's doubling periods) tolerates phase errors up to ±π/2 on the coarser lev
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -163,6 +164,7 @@ def noise_aware_unwrap(
     max_ambiguity: float = 1e-3,
     k_sigma: float = 4.0,
     model_sigma_rad: float = 0.03,
+    workers: int = 1,
 ) -> UnwrappedPhase:
     """Temporal unwrapping that fixes an order only where the noise makes it unambiguous.
 
@@ -201,6 +203,7 @@ def noise_aware_unwrap(
     wrapped_rad : (N, H, W) float, object − reference differences, coarsest first.
     sigma_rad : (N, H, W) float, their standard deviations (inf or NaN: level unusable).
     period_um : (N,) strictly decreasing.
+    workers : threads sharing the blocks of rows (the result does not depend on it).
     """
     w, p = _check(wrapped_rad, period_um)
     sig = np.asarray(sigma_rad, dtype=np.float32)
@@ -227,11 +230,20 @@ def noise_aware_unwrap(
     # each, which on whole megapixel images would be bound by memory bandwidth.
     step = max(1, 32768 // max(1, int(np.prod(shape[1:], dtype=np.int64))))
     consts = (q, np.float32(p[0] / p[1]) if n_lev > 1 else None, z, log_eps, k2, model_sigma_rad)
-    for r0 in range(0, rows, step):
+
+    def unwrap_rows(r0: int) -> None:
         sl = slice(r0, min(rows, r0 + step))
         est, info, worst, level, conf = _unwrap_block(w[:, sl], sig[:, sl], *consts)
         out_est[sl], out_info[sl], out_worst[sl] = est, info, worst
         out_level[sl], out_conf[sl] = level, conf
+
+    # Pixels are independent: the blocks may run in threads.
+    if workers > 1:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            list(pool.map(unwrap_rows, range(0, rows, step)))
+    else:
+        for r0 in range(0, rows, step):
+            unwrap_rows(r0)
     finite = np.isfinite(out_est) & (out_info > 0)
     with np.errstate(divide="ignore"):
         sigma = np.float32(1.0) / np.sqrt(out_info)

@@ -219,3 +219,14 @@ def test_phase_sigma_ignores_the_patterns_second_harmonic(recon_sense, recon_sig
     # The phase itself: the harmonic does not bias it; odd harmonics do, slightly (a few
     # σ at most here), so only the order of magnitude is checked.
     assert np.sqrt(np.mean(err**2)) < 3 * np.median(sig)
+
+
+def test_four_step_without_modulation_leaves_the_rest_unchanged():
+    rng = np.random.default_rng(23)
+    frames = _frames(rng.uniform(-3, 3, (8, 8)), 0.4, 0.8).astype(np.float32)
+    frames[:, 0, 0] = 0.0  # A = 0: modulation NaN there when asked for
+    full = four_step_phase(frames)
+    bare = four_step_phase(frames, modulation=False)
+    assert bare.modulation is None and np.isnan(full.modulation[0, 0])
+    for field in ("phase_rad", "amplitude", "mean", "residual"):
+        np.testing.assert_array_equal(getattr(bare, field), getattr(full, field))

@@ -186,3 +186,20 @@ def test_consensus_rejects_bad_input():
         consensus_azimuths(np.zeros((2, 3, 3)), np.zeros((2, 3, 4)))
     with pytest.raises(ValueError, match="height_um"):
         consensus_azimuths(np.zeros((3, 3)), np.zeros((3, 3)))
+
+
+def test_consensus_in_blocks_and_threads_gives_the_same_result(monkeypatch):
+    # Pixels are independent: cutting them into blocks (here of 1000 pixels, the last one
+    # partial) run in two threads changes nothing, outliers and missing azimuths included.
+    import worker.recon.height as height
+
+    rng = np.random.default_rng(22)
+    h = rng.normal(100.0, 2.0, (4, 60, 70)).astype(np.float32)
+    s = rng.uniform(0.5, 3.0, h.shape).astype(np.float32)
+    h[rng.uniform(size=h.shape) < 0.1] += 400.0  # wrong orders
+    h[rng.uniform(size=h.shape) < 0.1] = np.nan  # shadowed azimuths
+    whole = consensus_azimuths(h, s)
+    monkeypatch.setattr(height, "_CONSENSUS_BLOCK", 1000)
+    blocks = consensus_azimuths(h, s, workers=2)
+    for field in ("height_um", "spread_um", "azimuths_used", "sigma_um"):
+        np.testing.assert_array_equal(getattr(blocks, field), getattr(whole, field))

@@ -295,3 +295,17 @@ def test_noise_aware_unwrap_allows_for_model_error():
     np.testing.assert_array_equal(res.level_used, 3)
     strict = noise_aware_unwrap(wrap_phase(levels), sig, periods, model_sigma_rad=0.0)
     assert np.all(strict.conflicts > 0)
+
+
+def test_noise_aware_unwrap_in_threads_gives_the_same_result():
+    # Pixels are independent: blocks of rows shared out between threads change nothing.
+    rng = np.random.default_rng(21)
+    periods = np.array([64.0, 32.0, 16.0, 8.0])
+    truth = rng.uniform(-np.pi, np.pi, (120, 50)) * 0.9  # coarsest level within (−π, π)
+    scaled = truth[None] * (periods[0] / periods)[:, None, None]
+    sigma = rng.uniform(0.02, 0.6, scaled.shape).astype(np.float32)
+    wrapped = wrap_phase((scaled + rng.normal(0, 1, scaled.shape) * sigma).astype(np.float32))
+    one = noise_aware_unwrap(wrapped, sigma, periods)
+    two = noise_aware_unwrap(wrapped, sigma, periods, workers=2)
+    for field in ("dpsi_rad", "order_residual", "level_used", "weight", "sigma_rad", "conflicts"):
+        np.testing.assert_array_equal(getattr(two, field), getattr(one, field))
