@@ -76,6 +76,7 @@ def cliff_samples(
     polar_deg: float,
     pixel_size_um: float,
     radius: int = 10,
+    min_period_px: float = 4.0,
 ) -> CliffSamples:
     """One azimuth's fringe response kept where a cliff may be (for :func:`refine_cliff_heights`).
 
@@ -83,7 +84,10 @@ def cliff_samples(
     69° rises over one pixel (2.6 pixel sizes) or of the edge of its measured pixels (a
     cliff's shadow). That covers the pixels next to a cliff of the combined heights and
     the windows their sides are read from, without keeping 2·L floats per pixel of the
-    whole frame. height_um (H, W) NaN where not measured; phase_rad (L, H, W) object −
+    whole frame. Periods under ``min_period_px`` pixels are left out: there a pixel
+    averages the fringe away (aliasing under 2 px) and the fringe's carrier turns by
+    more than π/4 over one side's part of a pixel, which the real shares of the mixture
+    model ignore. height_um (H, W) NaN where not measured; phase_rad (L, H, W) object −
     reference phase; amplitude_obj/ref: L arrays (H, W) of 4-step amplitudes B.
     """
     h = np.asarray(height_um, np.float32)
@@ -101,17 +105,20 @@ def cliff_samples(
     seed[:-1] |= dy
     k = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
     idx = np.flatnonzero(cv2.dilate(seed, k))
-    levels = len(amplitude_obj)
-    amp = np.empty((levels, idx.size), np.float32)
-    for i in range(levels):
+    periods = np.asarray(period_um, np.float64)
+    use = np.flatnonzero(periods >= min_period_px * pixel_size_um)
+    amp = np.empty((use.size, idx.size), np.float32)
+    ph = np.empty((use.size, idx.size), np.float32)
+    flat_phase = np.asarray(phase_rad).reshape(periods.size, -1)
+    for j, i in enumerate(use):
         with np.errstate(invalid="ignore", divide="ignore"):
-            amp[i] = amplitude_obj[i].ravel()[idx] / amplitude_ref[i].ravel()[idx]
-    ph = np.asarray(phase_rad).reshape(levels, -1)[:, idx].astype(np.float32)
+            amp[j] = amplitude_obj[i].ravel()[idx] / amplitude_ref[i].ravel()[idx]
+        ph[j] = flat_phase[i, idx]
     return CliffSamples(
         flat_index=idx,
         amplitude=amp,
         phase_rad=ph,
-        period_um=np.asarray(period_um, np.float64),
+        period_um=periods[use],
         tan_theta=float(np.tan(np.radians(polar_deg))),
     )
 
@@ -414,6 +421,10 @@ def refine_cliff_heights(
         return CliffRefinement(out, frac, upper, lower)
     mid = 0.5 * (h_hi + h_lo)
     shares, weights = [], []
+    # Misfit of the two-side model and of a pure pixel at its own fringe height.
+    misfit_two = np.zeros(rows.size)
+    misfit_pure = np.zeros(rows.size)
+    own_h = fr[rows, cols].astype(np.float64)
     width = h.shape[1]
     flat = rows * width + cols
     for smp in samples:
@@ -424,6 +435,13 @@ def refine_cliff_heights(
         have = have & (smp.flat_index[pos] == flat) if have else np.zeros(flat.size, bool)
         z = smp.response(pos)
         m_hi, m_lo = mixture_amplitudes(z, smp.period_um, smp.tan_theta, h_hi, h_lo)
+        used = have & np.isfinite(m_hi) & np.isfinite(z).all(axis=0)
+        phase = -2j * np.pi * smp.tan_theta / smp.period_um[:, None]
+        fit = m_hi * np.exp(phase * h_hi) + m_lo * np.exp(phase * h_lo)
+        e_own = np.exp(phase * np.nan_to_num(own_h))
+        pure_fit = own_amplitude(z, smp.period_um, smp.tan_theta, np.nan_to_num(own_h)) * e_own
+        misfit_two += np.where(used, np.sum(np.abs(z - fit) ** 2, axis=0), 0.0)
+        misfit_pure += np.where(used, np.sum(np.abs(z - pure_fit) ** 2, axis=0), 0.0)
         top = np.fmax(a_hi, a_lo)
         for a_side, share in ((a_hi, m_hi), (a_lo, None)):
             lit = have & np.isfinite(a_side) & (a_side > 0.1 * top) & np.isfinite(m_hi)
@@ -440,7 +458,14 @@ def refine_cliff_heights(
     g = _weighted_median(
         np.where(np.isfinite(t_all), t_all, np.nan), np.take_along_axis(w_all, order, axis=1)
     )
-    ok = np.isfinite(g)
+    # Refined only where the data prefer two sides to a pure pixel at its own fringe height
+    # (none: the fringes gave up on it). Sides read from ground that is not two planes
+    # (several surfaces in the window, at coarse pixels) fail this test.
+    is_pure = np.isfinite(own_h) & (misfit_pure <= misfit_two)
+    ok = np.isfinite(g) & ~is_pure
+    # A pure pixel the fusion pulled across the cliff gets its own fringe height back.
+    back = is_pure & pulled[rows, cols]
+    out[rows[back], cols[back]] = own_h[back].astype(np.float32)
     r_ok, c_ok = rows[ok], cols[ok]
     known = _pure_sides(base, r_ok, c_ok, mid[ok], h.shape)
     f = deblur_fractions(g[ok], r_ok, c_ok, known, blur_sigma_px=blur_sigma_px)

@@ -284,3 +284,33 @@ def test_cliff_samples_keep_pixels_near_jumps_only():
     assert (np.abs(rows[cols < 20] - 5) <= 4).all() and (np.abs(cols[cols < 20] - 5) <= 4).all()
     np.testing.assert_allclose(smp.amplitude, 0.5)
     assert smp.tan_theta == pytest.approx(1.0)
+
+
+def test_fused_pixels_pulled_across_a_cliff_are_put_back():
+    rng = np.random.default_rng(6)
+    size, slope, cliff = 32, (0.2, -0.1), 600.0
+    h_sub, upper, h_point = _scene(size, cliff_um=cliff, angle_deg=90.0, offset_px=0.3)
+    brightness = [(0.5, 0.3), (0.45, 0.0), (0.3, 0.35), (0.4, 0.25)]
+    sigma = 0.005
+    samples = _render(h_sub, upper, size, [0, 90, 180, 270], brightness, sigma, rng)
+    truth = _box(h_sub, size)
+    # The fusion dragged the two rows below the wall's pixels half-way up the cliff.
+    fused = truth.astype(np.float32).copy()
+    f_true = _box(upper.astype(float), size)
+    wall_rows = np.flatnonzero(((f_true > 0) & (f_true < 1)).any(axis=1))
+    dragged = np.zeros((size, size), bool)
+    dragged[wall_rows.max() + 1 : wall_rows.max() + 3, 6:-6] = True
+    fused[dragged] += np.float32(0.4 * cliff)
+    out, _, _, _ = refine_cliff_heights(
+        fused,
+        h_point,
+        _normals(size, slope),
+        np.ones((size, size), bool),
+        samples,
+        pixel_size_um=S_UM,
+        blur_sigma_px=0.0,
+    )
+    # Each comes back to its side: as a refined pixel (f within the noise bound of
+    # test_refine_gives_the_area_mean_at_a_cliff) or as a pure one (its fringe height).
+    tol_f = 5 * sigma / (0.25 * np.sqrt(PERIODS.size) * 0.9) + 0.08 / PERIODS.size
+    assert np.abs(out - truth)[dragged].max() <= tol_f * cliff
