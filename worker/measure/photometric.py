@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import cv2
 import numpy as np
 
@@ -13,8 +15,8 @@ from worker.recon.radiometry import flat_field
 __all__ = ["decode_with_references", "measure_color", "measure_photometric"]
 
 
-def _source_footprint(ref_stack, frames, height_um, pixel_size_um):
-    """Reference radiance at p′ = p − h·tanθ·u instead of p (in place).
+def _source_footprint(ref_stack, frames, height_um, pixel_size_um, workers=1):
+    """Reference radiance at p′ = p − h·tanθ·u instead of p (in place; frames in threads).
 
     The light that reaches the surface point above p crossed the reference plane at p′
     (SCAN_BUNDLE.md): with a non-uniform source the flat field must be read there, or the
@@ -23,7 +25,9 @@ def _source_footprint(ref_stack, frames, height_um, pixel_size_um):
     """
     rows, cols = height_um.shape
     r, c = np.mgrid[0:rows, 0:cols].astype(np.float32)
-    for k, f in enumerate(frames):
+
+    def shift_frame(k: int) -> None:
+        f = frames[k]
         shift = height_um * np.float32(np.tan(np.radians(f.polar_deg)) / pixel_size_um)
         phi = np.radians(f.azimuth_deg)
         map_x = c - shift * np.float32(np.sin(phi))
@@ -35,6 +39,13 @@ def _source_footprint(ref_stack, frames, height_um, pixel_size_um):
             interpolation=cv2.INTER_LINEAR,
             borderMode=cv2.BORDER_REPLICATE,
         )
+
+    if workers > 1:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            list(pool.map(shift_frame, range(len(frames))))
+    else:
+        for k in range(len(frames)):
+            shift_frame(k)
     return ref_stack
 
 
@@ -47,7 +58,7 @@ def decode_with_references(bundle, frames) -> tuple[np.ndarray, np.ndarray | Non
     return both[: len(frames)], both[len(frames) :]
 
 
-def _shading(bundle, frames, stack, rho_ref, meas, kind, ref_stack=None):
+def _shading(bundle, frames, stack, rho_ref, meas, kind, ref_stack=None, workers=1):
     refs = [bundle.reference_of(f) for f in frames]
     if all(r is not None for r in refs):
         polar = np.array([f.polar_deg for f in frames], np.float64)
@@ -55,7 +66,7 @@ def _shading(bundle, frames, stack, rho_ref, meas, kind, ref_stack=None):
             ref_stack = bundle.radiance_many(refs)
         if meas.rough_height_um is not None:
             ref_stack = _source_footprint(
-                ref_stack, frames, meas.rough_height_um, meas.pixel_size_um
+                ref_stack, frames, meas.rough_height_um, meas.pixel_size_um, workers
             )
         return flat_field(stack, ref_stack, reference_reflectance=rho_ref, polar_deg=polar)
     meas.warnings.append(
@@ -76,7 +87,7 @@ def measure_photometric(bundle, photo, meas, rho_ref, *, stacks=None, workers: i
     already; workers: threads of the photometric fit.
     """
     stack, ref_stack = stacks if stacks is not None else (bundle.radiance_many(photo), None)
-    shading = _shading(bundle, photo, stack, rho_ref, meas, "photometric", ref_stack)
+    shading = _shading(bundle, photo, stack, rho_ref, meas, "photometric", ref_stack, workers)
     del stack, ref_stack, stacks
     az = np.array([f.azimuth_deg for f in photo])
     polar = np.array([f.polar_deg for f in photo])
