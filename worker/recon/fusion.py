@@ -10,9 +10,11 @@ with ḡ_e the mean slope of the edge's two pixels (from the normals), s the pix
 the fringe heights. The weights are inverse variances, so the solution is the maximum-
 likelihood surface under Gaussian noise:
 
-- slope term: a normal with angular error σ_θ gives a slope error σ_θ/n_z² (d tan α = dα/cos²α),
-  i.e. an error s·σ_θ/n_z² µm on an edge; steep walls (small |n_z|) are thus down-weighted
-  by n_z⁴, and pixels without a normal carry no slope term;
+- slope term: isotropic angular noise σ_θ gives the slopes the covariance
+  σ_θ²(1 + |g|²)(I + g gᵀ) — σ_θ/n_z² along the tilt (d tan α = dα/cos²α), σ_θ/n_z across
+  it — so an x-edge's step has the error s·σ_θ·√((1 + |g|²)(1 + g_x²)) µm (a y-edge's with
+  g_y); steep walls are down-weighted by up to n_z⁴, and pixels without a normal carry no
+  slope term;
 - height term: λ = 1/σ_f², σ_f the fringe height noise; pixels without a fringe height
   (shadowed for every azimuth) have λ = 0 and are reached by the slopes alone.
 
@@ -30,7 +32,10 @@ the first solve one round of variance component estimation (`variance_factors`, 
 1979) rescales each class of slope and height terms by what its residuals say.
 
 Edge targets use the four-point cell average of the slopes where it stands out of the noise
-(`cell_average_targets_um`). `sharpen_heights` undoes a measured camera blur afterwards.
+(`cell_average_targets_um`); the final solve's slopes are also low-passed across their edges
+by a maximally flat half-band filter (`transverse_mean_slopes`). A low-frequency bias of the
+normals is removed before (`normal_bias`). `sharpen_heights` undoes a measured camera blur
+afterwards.
 """
 
 from __future__ import annotations
