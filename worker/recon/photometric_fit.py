@@ -409,9 +409,11 @@ def asymmetric_refine(model, inl, b, ok, sigma, iterations=1):
     b = b.copy()
     cols = np.arange(model.s.shape[1])
     for _ in range(iterations):
-        sub = model.sub(cols)
-        r, _, _ = sub.residual(b[cols])
-        high = inl[:, cols] & (r > two_sigma)
+        # The first round looks at every pixel: no gathered copy of the chunk.
+        every = cols.size == model.s.shape[1]
+        sub = model if every else model.sub(cols)
+        r, _, _ = sub.residual(b.copy() if every else b[cols])
+        high = (inl if every else inl[:, cols]) & (r > two_sigma)
         keep = np.any(high, axis=0) & ok[cols]
         cols, r, high = cols[keep], r[:, keep], high[:, keep]
         if cols.size == 0:
