@@ -182,12 +182,14 @@ def _correct(n, f, m, s, sigma_px, sig, bias_floor_rad, significance, outlier_si
 
     weight, sigma_h = _weights(support, sig)
     k = 2 * int(np.ceil(4 * sigma_px)) + 1
-    stack = np.zeros((*f.shape, 7), np.float32)
-    for i, v in enumerate((nx, ny, nz, qx, qy, qz)):
-        stack[..., i] = np.where(support, v, 0) * weight
-    stack[..., 6] = weight
-    sm = cv2.GaussianBlur(stack, (k, k), sigma_px, borderType=cv2.BORDER_CONSTANT)
-    ax_, ay_, az_, bx, by, bz, w = (sm[..., i] for i in range(7))
+
+    def blur(v):
+        return cv2.GaussianBlur(v, (k, k), sigma_px, borderType=cv2.BORDER_CONSTANT)
+
+    ax_, ay_, az_, bx, by, bz = (
+        blur(np.where(support, v * weight, np.float32(0))) for v in (nx, ny, nz, qx, qy, qz)
+    )
+    w = blur(weight)
     # Rotation axis c = ā × b̄ and angle θ = atan2(|c|, ā·b̄) of the two smoothed normals
     # (their lengths cancel in the angle).
     cx = ay_ * bz - az_ * by
@@ -224,7 +226,7 @@ def _weights(support, sig):
     ok = support & np.isfinite(sig) & (sig > 0)
     if not ok.any():
         return support.astype(np.float32), float("nan")
-    typical = float(np.median(sig[ok]))
+    typical = float(np.median(sig[ok][::4]))  # a quarter of the pixels fix it to ~1 %
     with np.errstate(divide="ignore", invalid="ignore"):
         rel = np.where(ok, np.square(typical / sig), 0)
     return np.minimum(rel, 1).astype(np.float32), typical
