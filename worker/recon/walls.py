@@ -428,6 +428,8 @@ def refine_cliff_heights(
     width = h.shape[1]
     flat = rows * width + cols
     for smp in samples:
+        if smp.period_um.size < 2:  # one period cannot tell two sides apart
+            continue
         a_hi, a_lo = _side_amplitudes(smp, base, pure, rows, cols, mid, radius)
         pos = np.searchsorted(smp.flat_index, flat)
         pos = np.clip(pos, 0, max(smp.flat_index.size - 1, 0))
@@ -452,6 +454,8 @@ def refine_cliff_heights(
     # Weighted median over the azimuths and sides: a shadow edge crossing the window makes
     # one side's brightness at the pixel differ from its neighbours' (that share is then
     # wrong, not noisy); the median follows the consistent majority.
+    if not shares:
+        return CliffRefinement(out, frac, upper, lower)
     t_all, w_all = np.stack(shares, axis=1), np.stack(weights, axis=1)
     order = np.argsort(t_all, axis=1)
     t_all = np.take_along_axis(t_all, order, axis=1)

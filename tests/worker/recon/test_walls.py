@@ -314,3 +314,28 @@ def test_fused_pixels_pulled_across_a_cliff_are_put_back():
     # test_refine_gives_the_area_mean_at_a_cliff) or as a pure one (its fringe height).
     tol_f = 5 * sigma / (0.25 * np.sqrt(PERIODS.size) * 0.9) + 0.08 / PERIODS.size
     assert np.abs(out - truth)[dragged].max() <= tol_f * cliff
+
+
+def test_samples_with_one_period_change_nothing():
+    rng = np.random.default_rng(7)
+    size, slope = 32, (0.2, -0.1)
+    h_sub, upper, h = _scene(size, angle_deg=20.0, offset_px=0.3)
+    samples = _render(h_sub, upper, size, [0], [(0.5, 0.3)], 0.0, rng)
+    one = CliffSamples(
+        samples[0].flat_index,
+        samples[0].amplitude[-1:],
+        samples[0].phase_rad[-1:],
+        PERIODS[-1:],
+        TAN,
+    )
+    out, frac, _, _ = refine_cliff_heights(
+        h,
+        h,
+        _normals(size, slope),
+        np.ones((size, size), bool),
+        [one],
+        pixel_size_um=S_UM,
+        blur_sigma_px=0.45,
+    )
+    assert np.array_equal(out, h)
+    assert np.isnan(frac).all()
