@@ -11,17 +11,39 @@ from threadpoolctl import threadpool_limits
 __all__ = ["angle_key", "prefetch", "single_threaded_blas"]
 
 
-def prefetch(bundle, groups: Sequence[Sequence], workers: int = 2) -> Iterator[np.ndarray]:
-    """Radiance stacks of the groups, decoding group i+1 while the caller works on group i."""
+def prefetch(
+    bundle, groups: Sequence[Sequence], workers: int = 2, ahead: int = 2
+) -> Iterator[np.ndarray]:
+    """Radiance stacks of the groups, in order, decoded by `workers` threads frame by frame
+    up to `ahead` groups beyond the one the caller works on.
+
+    Frames, not groups, are the unit of work: the threads never wait for the caller to take
+    a group before starting on the next (a group-at-a-time pipeline left a core idle
+    whenever one group took longer to process than the next one to decode).
+    """
     if not groups:
         return
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        future = pool.submit(bundle.radiance_many, groups[0], max_workers=workers)
-        for i in range(len(groups)):
-            stack = future.result()
-            if i + 1 < len(groups):
-                future = pool.submit(bundle.radiance_many, groups[i + 1], max_workers=workers)
-            yield stack
+    cam = bundle.manifest.camera
+    queue = [(g, i, f) for g, group in enumerate(groups) for i, f in enumerate(group)]
+    stacks: dict[int, np.ndarray] = {}
+    futures: dict[int, list] = {}
+
+    def fill(stack: np.ndarray, i: int, frame) -> None:
+        stack[i] = bundle.radiance(frame)
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        nxt = 0
+        for g in range(len(groups)):
+            while nxt < len(queue) and queue[nxt][0] <= g + ahead:
+                gg, i, frame = queue[nxt]
+                if gg not in stacks:
+                    shape = (len(groups[gg]), cam.height, cam.width)
+                    stacks[gg] = np.empty(shape, np.float32)
+                futures.setdefault(gg, []).append(pool.submit(fill, stacks[gg], i, frame))
+                nxt += 1
+            for future in futures.pop(g):
+                future.result()
+            yield stacks.pop(g)
 
 
 def single_threaded_blas():
