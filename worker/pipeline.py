@@ -267,6 +267,7 @@ def surface_of(
         mask=mask,
         normal_sigma_rad=sig_n,
         height_sigma_um=sig_f,
+        workers=min(2, os.cpu_count() or 1),
     )
     if blur_sigma_px > 0:
         h = sharpen_heights(h, mask, blur_sigma_px=blur_sigma_px, pixel_size_um=s)

@@ -98,7 +98,7 @@ def _rhs(tx, ty, wx, wy, lam, data):
     return b
 
 
-def _dct_preconditioner(shape, w_bar, lam_bar):
+def _dct_preconditioner(shape, w_bar, lam_bar, workers=1):
     rows, cols = shape
     ky = 2.0 - 2.0 * np.cos(np.pi * np.arange(rows) / rows)
     kx = 2.0 - 2.0 * np.cos(np.pi * np.arange(cols) / cols)
@@ -107,8 +107,11 @@ def _dct_preconditioner(shape, w_bar, lam_bar):
     np.divide(1.0, denom, out=inv, where=denom > 0)
     inv = inv.astype(np.float32)
 
-    def apply(r):
-        return fft.idctn(fft.dctn(r, norm="ortho") * inv, norm="ortho")
+    def apply(r, overwrite=False):
+        # The 1-D transforms of each axis are independent: threads give the same values.
+        c = fft.dctn(r, norm="ortho", overwrite_x=overwrite, workers=workers)
+        c *= inv
+        return fft.idctn(c, norm="ortho", overwrite_x=True, workers=workers)
 
     return apply
 
@@ -124,6 +127,7 @@ def solve_screened_poisson(
     x0_um: np.ndarray | None = None,
     rtol: float = 1e-4,
     max_iter: int = 500,
+    workers: int = 1,
 ) -> ScreenedPoisson:
     """Minimise E(h) (module docstring) by DCT-preconditioned conjugate gradients.
 
@@ -133,6 +137,7 @@ def solve_screened_poisson(
     A pixel with no edge and no data weight is unconstrained: it is returned as 0.
     Without data (λ ≡ 0) heights are defined up to a constant per connected part; the
     solution returned has the minimum norm for the preconditioned iteration (mean ≈ 0).
+    workers: threads of the DCTs (the result does not depend on it).
     """
     wx = np.asarray(wx, dtype=np.float32)
     wy = np.asarray(wy, dtype=np.float32)
@@ -147,7 +152,9 @@ def solve_screened_poisson(
     # unconstrained pixels (a separate block of the system, see below) and crop at the end.
     fast = (fft.next_fast_len(rows, real=True), fft.next_fast_len(cols, real=True))
     if fast != (rows, cols):
-        return _solve_padded(tx, ty, wx, wy, data_um, data_weight, x0_um, rtol, max_iter, fast)
+        return _solve_padded(
+            tx, ty, wx, wy, data_um, data_weight, x0_um, rtol, max_iter, fast, workers
+        )
     tx = np.where(wx > 0, np.nan_to_num(np.asarray(tx, np.float32)), np.float32(0))
     ty = np.where(wy > 0, np.nan_to_num(np.asarray(ty, np.float32)), np.float32(0))
     if data_weight is None:
@@ -181,7 +188,7 @@ def solve_screened_poisson(
         wx = np.where(free[:, 1:] & free[:, :-1], np.float32(w_bar), wx)
         wy = np.where(free[1:, :] & free[:-1, :], np.float32(w_bar), wy)
         lam = np.where(free, np.float32(lam_bar if lam_bar > 0 else w_bar * 1e-3), lam)
-    dct_solve = _dct_preconditioner((rows, cols), w_bar, lam_bar)
+    dct_solve = _dct_preconditioner((rows, cols), w_bar, lam_bar, workers)
     # Symmetric diagonal scaling around the DCT solve, S·P·S with S = √(d̄/d) (d the diagonal
     # of A, d̄ the constant operator's): where walls are down-weighted or fringe heights
     # rejected, A's local stiffness differs from w̄·L + λ̄·I by orders of magnitude, and the
@@ -201,7 +208,9 @@ def solve_screened_poisson(
     else:
 
         def precond(r):
-            return scale * dct_solve(scale * r)
+            z = dct_solve(scale * r, overwrite=True)
+            z *= scale
+            return z
 
     b = _rhs(tx, ty, wx, wy, lam, data)
     h = (
@@ -238,7 +247,7 @@ def solve_screened_poisson(
     return ScreenedPoisson(height_um=h.astype(np.float32), iterations=it, relative_residual=res)
 
 
-def _solve_padded(tx, ty, wx, wy, data_um, data_weight, x0_um, rtol, max_iter, fast):
+def _solve_padded(tx, ty, wx, wy, data_um, data_weight, x0_um, rtol, max_iter, fast, workers):
     rows, cols = wy.shape[0] + 1, wx.shape[1] + 1
     pr, pc = fast[0] - rows, fast[1] - cols
 
@@ -259,6 +268,7 @@ def _solve_padded(tx, ty, wx, wy, data_um, data_weight, x0_um, rtol, max_iter, f
         x0_um=pad(x0_um),
         rtol=rtol,
         max_iter=max_iter,
+        workers=workers,
     )
     return ScreenedPoisson(
         sol.height_um[:rows, :cols].copy(), sol.iterations, sol.relative_residual
