@@ -48,17 +48,30 @@ def _consensus_centre(est: np.ndarray, band: float) -> np.ndarray:
     that with one clean sample and one highlight the clean one wins (shadows were already
     dropped as too dark).  est : (A, N) with NaN for unusable samples.
     """
+    a = est.shape[0]
     finite = np.isfinite(est)
+    # support[j] = #{i : |est_i − est_j| ≤ band·est_j, both finite}. |est_i − est_j| is
+    # symmetric: each pair is differenced once and tested against both ends.
+    with np.errstate(invalid="ignore"):
+        tol = [band * est[j] for j in range(a)]
+        support = [(finite[j] & (np.float32(0) <= tol[j])).astype(np.int16) for j in range(a)]
+        for i in range(a):
+            for j in range(i + 1, a):
+                d = np.abs(est[j] - est[i])
+                support[i] += d <= tol[i]
+                support[j] += d <= tol[j]
+    # A non-finite sample neither has support nor gives it (inf − inf is NaN, inf ≤ inf).
+    support = [np.where(finite[j], support[j], np.int16(0)) for j in range(a)]
     best = np.full(est.shape[1], np.nan, dtype=np.float32)
-    best_support = np.zeros(est.shape[1], dtype=np.int64)
-    for j in range(est.shape[0]):
+    best_support = np.zeros(est.shape[1], dtype=np.int16)
+    for j in range(a):
         c = est[j]
         with np.errstate(invalid="ignore"):
-            near = np.abs(est - c[None, :]) <= band * c[None, :]
-        support = np.where(finite[j], (near & finite).sum(axis=0), 0)
-        better = (support > best_support) | ((support == best_support) & (support > 0) & (c < best))
+            better = (support[j] > best_support) | (
+                (support[j] == best_support) & (support[j] > 0) & (c < best)
+            )
         best = np.where(better, c, best)
-        best_support = np.where(better, support, best_support)
+        best_support = np.where(better, support[j], best_support)
     return best
 
 
@@ -144,16 +157,24 @@ def rgb_reflectance(
         cos += ls[:, 1:2] * nt[1]
         cos += ls[:, 2:3] * nt[2]
         sc = s[sel].reshape(sel.size, -1)
+        est = np.full(sc.shape, np.nan, np.float32)
         with np.errstate(divide="ignore", invalid="ignore"):
-            est = np.where(cos >= min_cos, sc / cos, np.nan)
-        # A cast shadow leaves ρ ≈ 0 (noise only): below min_reflectance nothing is usable.
-        est = np.where(est >= min_reflectance, est, np.nan)
+            np.divide(sc, cos, out=est, where=cos >= min_cos)
+            # A cast shadow leaves ρ ≈ 0 (noise only): below min_reflectance nothing is usable.
+            np.copyto(est, np.float32(np.nan), where=~(est >= min_reflectance))
         centre = _consensus_centre(est, band)
-        keep = np.isfinite(est) & (np.abs(est - centre[None, :]) <= band * centre[None, :])
-        cnt = keep.sum(axis=0)
+        # Samples within the band around the centre (a NaN sample or centre compares False;
+        # the centre is finite wherever it has support), summed in sample order.
+        tol = band * centre
+        total = np.zeros(centre.shape, np.float32)
+        cnt = np.zeros(centre.shape, np.int16)
+        for j in range(sel.size):
+            with np.errstate(invalid="ignore"):
+                keep = np.abs(est[j] - centre) <= tol
+            cnt += keep
+            total += np.where(keep, est[j], np.float32(0))
         with np.errstate(divide="ignore", invalid="ignore"):
-            mean = np.where(keep, est, 0.0).sum(axis=0) / cnt
-        rgb[c] = np.where(cnt > 0, mean, np.nan)
+            rgb[c] = np.where(cnt > 0, total / cnt, np.float32(np.nan))
         used[c] = cnt
     missing = np.any(~np.isfinite(rgb), axis=0)
     fallback = np.zeros(h * w, dtype=bool)
