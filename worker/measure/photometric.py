@@ -68,7 +68,9 @@ def _shading(bundle, frames, stack, rho_ref, meas, kind, ref_stack=None, workers
             ref_stack = _source_footprint(
                 ref_stack, frames, meas.rough_height_um, meas.pixel_size_um, workers
             )
-        return flat_field(stack, ref_stack, reference_reflectance=rho_ref, polar_deg=polar)
+        return flat_field(
+            stack, ref_stack, reference_reflectance=rho_ref, polar_deg=polar, workers=workers
+        )
     meas.warnings.append(
         f"{kind}: no reference frames; assuming uniform illumination, albedo is relative"
     )

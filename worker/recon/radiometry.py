@@ -17,6 +17,8 @@ power k and its non-uniform footprint E cancel pixel by pixel.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 __all__ = ["flat_field"]
@@ -38,6 +40,7 @@ def flat_field(
     reference_reflectance: float,
     polar_deg: float | np.ndarray,
     min_reference_fraction: float = 0.05,
+    workers: int = 1,
 ) -> np.ndarray:
     """Shading ``s = ρ·V·max(0, n·l)`` from object and reference radiance.
 
@@ -54,6 +57,8 @@ def flat_field(
     min_reference_fraction : float in [0, 1)
         Pixels whose reference radiance is below this fraction of the frame's bright level
         (its 99th percentile) are NaN: the source barely reaches them, the ratio is noise.
+    workers : int
+        Threads sharing the frames (the result does not depend on it).
 
     Returns
     -------
@@ -97,7 +102,8 @@ def flat_field(
     obj3 = obj.reshape((k,) + obj.shape[-2:]).astype(np.float32, copy=False)
     ref3 = ref.reshape((k,) + ref.shape[-2:]).astype(np.float32, copy=False)
     out = np.empty(obj3.shape, dtype=np.float32)
-    for i in range(k):
+
+    def frame(i: int) -> None:
         r = ref3[i]
         # A strided sample gives the bright level at a sixteenth of the cost.
         sample = r[::4, ::4]
@@ -105,10 +111,17 @@ def flat_field(
         bright = float(np.percentile(sample, 99.0)) if sample.size else 0.0
         if bright <= 0.0:
             out[i] = np.nan
-            continue
+            return
         scale = np.float32(rho_ref * np.cos(np.deg2rad(theta[i])))
         ok = np.isfinite(r) & (r > np.float32(min_reference_fraction * bright)) & (r > 0)
         with np.errstate(divide="ignore", invalid="ignore"):
             s = obj3[i] / r * scale
         out[i] = np.where(ok & np.isfinite(s), s, np.float32(np.nan))
+
+    if workers > 1 and k > 1:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            list(pool.map(frame, range(k)))
+    else:
+        for i in range(k):
+            frame(i)
     return out.reshape(obj.shape)

@@ -37,6 +37,9 @@ def test_flat_field_stack_with_per_frame_polar_and_dark_reference_is_nan():
     assert np.all(np.isnan(s[:, :2]))
     np.testing.assert_allclose(s[0, 2:], 0.5 * np.cos(np.deg2rad(30.0)), rtol=1e-6)
     np.testing.assert_allclose(s[1, 2:], 0.5 * np.cos(np.deg2rad(60.0)), rtol=1e-6)
+    # Frames shared by threads: the very same values.
+    threaded = flat_field(obj, ref, reference_reflectance=1.0, polar_deg=[30.0, 60.0], workers=2)
+    np.testing.assert_array_equal(threaded, s)
 
 
 @pytest.mark.parametrize(
