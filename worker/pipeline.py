@@ -116,10 +116,15 @@ def reconstruct_bundle(
     quality = _quality_maps(meas, height, mask)
     report = _report(meas, mask, quality, fusion=fusion, surface=used_surface)
     report["quality"]["camera_blur_sigma_px"] = blur_px
-    rgb = (
-        meas.rgb_linear if meas.rgb_linear is not None else np.repeat(meas.albedo[..., None], 3, 2)
-    )
-    albedo8 = linear_to_srgb8(np.where(mask[..., None], rgb, 0))
+    if meas.rgb_srgb8 is not None:  # encoded by the colour stage; sRGB(0) = 0
+        albedo8 = np.where(mask[..., None], meas.rgb_srgb8, np.uint8(0))
+    else:
+        rgb = (
+            meas.rgb_linear
+            if meas.rgb_linear is not None
+            else np.repeat(meas.albedo[..., None], 3, 2)
+        )
+        albedo8 = linear_to_srgb8(np.where(mask[..., None], rgb, 0))
 
     t0 = time.perf_counter()
     report_progress("write", 0.90)

@@ -18,6 +18,7 @@ from worker.measure.frames import single_threaded_blas
 from worker.measure.fringe import measure_fringes
 from worker.measure.photometric import decode_with_references, measure_color, measure_photometric
 from worker.measure.result import Measurements, ReconstructionError
+from worker.recon.color import linear_to_srgb8
 
 __all__ = ["Measurements", "ReconstructionError", "measure_bundle"]
 
@@ -91,7 +92,9 @@ def measure_bundle(
         progress("color", 0.75)
         if color and background is not None and color_stacks is not None:
             meas.pending.append(
-                background.submit(_color, bundle, color, meas, rho_ref, color_stacks.result())
+                background.submit(
+                    _color, bundle, color, meas, rho_ref, color_stacks.result(), encode=True
+                )
             )
         elif color:
             stacks = color_stacks.result() if color_stacks is not None else None
@@ -102,9 +105,11 @@ def measure_bundle(
     return meas
 
 
-def _color(bundle, color, meas, rho_ref, stacks) -> None:
+def _color(bundle, color, meas, rho_ref, stacks, encode=False) -> None:
     # No BLAS limit here: in the background it would outlive measure_bundle's and reset it
     # when done; the colour stage calls no BLAS (recon.color).
     t0 = time.perf_counter()
     measure_color(bundle, color, meas, rho_ref, stacks=stacks)
+    if encode and meas.rgb_linear is not None:
+        meas.rgb_srgb8 = linear_to_srgb8(meas.rgb_linear)
     meas.timings["color"] = time.perf_counter() - t0

@@ -25,6 +25,9 @@ class Measurements:
     lights_used: np.ndarray | None = None
     photometric_polar_deg: float = 45.0
     rgb_linear: np.ndarray | None = None
+    # rgb_linear as 8-bit sRGB, when the colour stage ran in the background (it encodes it
+    # there, beside the fusion).
+    rgb_srgb8: np.ndarray | None = None
     fringe_height_um: np.ndarray | None = None
     fringe_spread_um: np.ndarray | None = None
     fringe_sigma_um: np.ndarray | None = None  # predicted σ of fringe_height_um (phase noise)

@@ -4,6 +4,7 @@ import numpy as np
 
 from worker.bundle import open_bundle
 from worker.measure import measure_bundle
+from worker.recon.color import linear_to_srgb8
 from worker.simulate import simulate_scan
 
 
@@ -21,6 +22,9 @@ def test_colour_in_background_gives_the_same_measurements(tmp_path):
     assert inline.rgb_linear is not None
     for name in ("rgb_linear", "normals", "albedo", "fringe_height_um", "modulation"):
         np.testing.assert_array_equal(getattr(background, name), getattr(inline, name))
+    # The background stage also encodes the texture (beside the fusion): the same bytes.
+    assert inline.rgb_srgb8 is None
+    np.testing.assert_array_equal(background.rgb_srgb8, linear_to_srgb8(inline.rgb_linear))
     assert background.used == inline.used
     assert background.warnings == inline.warnings
     assert set(background.timings) == set(inline.timings) >= {"fringe", "photometric", "color"}
