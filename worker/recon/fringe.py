@@ -183,9 +183,8 @@ def intensity_noise(
         var = float(np.median(r2) / 0.4549) if a.size else 0.0
         return IntensityNoise(read_var=var, gain=0.0, harmonic=harmonic)
     order = np.argsort(a)
-    bins = np.array_split(order, 12)
-    xa = np.array([np.median(a[b]) for b in bins])
-    yv = np.array([np.median(r2[b]) / 0.4549 for b in bins])
+    xa, yv = _bin_medians(a[order], r2[order], 12)
+    yv /= 0.4549
     # Theil–Sen line through the bins: a few bins spoilt by saturation or by the model's
     # failure (the brightest, the darkest) do not tilt it, as they would a least-squares fit.
     i, j = np.triu_indices(xa.size, k=1)
@@ -198,6 +197,26 @@ def intensity_noise(
     elif read_var < 0:
         gain, read_var = float(np.median(yv / xa)), 0.0
     return IntensityNoise(read_var=float(read_var), gain=float(gain), harmonic=harmonic)
+
+
+def _bin_medians(a_sorted, b, n_bins):
+    """Medians of a_sorted and of b over the bins of np.array_split(…, n_bins) (a_sorted
+    ascending): each bin's median of a is its middle value(s), those of b are taken on two
+    rectangular blocks (the first bins are one longer), not bin by bin."""
+    n = a_sorted.size
+    size, extra = divmod(n, n_bins)
+    lengths = np.array([size + 1] * extra + [size] * (n_bins - extra))
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    lo, hi = starts + (lengths - 1) // 2, starts + lengths // 2
+    xa = (a_sorted[lo] + a_sorted[hi]) / 2
+    cut = extra * (size + 1)
+    yv = np.concatenate(
+        [
+            np.median(b[:cut].reshape(extra, size + 1), axis=1),
+            np.median(b[cut:].reshape(n_bins - extra, size), axis=1),
+        ]
+    )
+    return xa, yv
 
 
 def phase_sigma_rad(phase: FringePhase, noise: IntensityNoise, *, local_px: int = 5) -> np.ndarray:

@@ -230,3 +230,19 @@ def test_four_step_without_modulation_leaves_the_rest_unchanged():
     assert bare.modulation is None and np.isnan(full.modulation[0, 0])
     for field in ("phase_rad", "amplitude", "mean", "residual"):
         np.testing.assert_array_equal(getattr(bare, field), getattr(full, field))
+
+
+@pytest.mark.parametrize("n", [24, 35, 1000, 20_011])
+def test_bin_medians_are_those_of_the_array_split_bins(n):
+    # intensity_noise's 12 quantile bins: two block medians give the per-bin values exactly.
+    from worker.recon.fringe import _bin_medians
+
+    rng = np.random.default_rng(n)
+    a = rng.random(n)
+    a[::5] = 0.5  # ties
+    b = rng.random(n) ** 2
+    order = np.argsort(a)
+    bins = np.array_split(order, 12)
+    xa, yv = _bin_medians(a[order], b[order], 12)
+    np.testing.assert_array_equal(xa, [np.median(a[i]) for i in bins])
+    np.testing.assert_array_equal(yv, [np.median(b[i]) for i in bins])
