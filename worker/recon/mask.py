@@ -19,6 +19,7 @@ Behind the tablet lies a dark, low-albedo support (black velvet, a V-block); cla
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from scipy import ndimage
 
@@ -90,9 +91,7 @@ def tablet_mask(
         measured[:] = True
     # Gaps of a few pixels in the measurements (cast shadows in wedges, unwrapping rejects)
     # are tablet all the same: the fusion bridges them; only unmeasured margins are dropped.
-    measured = ndimage.binary_fill_holes(
-        ndimage.binary_closing(measured, structure=np.ones((3, 3), bool), iterations=2)
-    )
+    measured = _fill_holes(_erode(_dilate(measured, 2), 2))
     fg &= measured
     if modulation is not None and fg.any():
         m = np.asarray(modulation, np.float32)
@@ -112,13 +111,42 @@ def tablet_mask(
             fg &= ~(np.isfinite(h) & (h < lo - max(hi - lo, 1.0)))
 
     if opening_px > 0:
-        fg = ndimage.binary_opening(fg, structure=np.ones((3, 3), bool), iterations=opening_px)
+        fg = _dilate(_erode(fg, opening_px), opening_px)
     labels, count = ndimage.label(fg)
     if count == 0:
         return fg
     sizes = ndimage.sum(fg, labels, index=np.arange(1, count + 1))
     keep = np.concatenate([[False], sizes >= min_part_fraction * sizes.max()])
     fg = keep[labels]
-    fg = ndimage.binary_fill_holes(fg)
-    fg = ndimage.binary_erosion(fg, structure=np.ones((3, 3), bool), iterations=1)
-    return fg
+    fg = _fill_holes(fg)
+    return _erode(fg, 1)
+
+
+# Binary morphology with a 3×3 square as scipy.ndimage's (outside the image counts as
+# background for both operations), by OpenCV on uint8, several times faster.
+_SQUARE = np.ones((3, 3), np.uint8)
+
+
+def _dilate(a, iterations):
+    return cv2.dilate(a.astype(np.uint8), _SQUARE, iterations=iterations).astype(bool)
+
+
+def _erode(a, iterations):
+    out = cv2.erode(
+        a.astype(np.uint8),
+        _SQUARE,
+        iterations=iterations,
+        borderType=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
+    return out.astype(bool)
+
+
+def _fill_holes(a):
+    """ndimage.binary_fill_holes: background not 4-connected to the image border is filled."""
+    labels, _ = ndimage.label(~a)
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    outside = np.zeros(labels.max() + 1, bool)
+    outside[border] = True
+    outside[0] = False
+    return ~outside[labels]

@@ -58,3 +58,30 @@ def test_bad_shapes_are_named():
         tablet_mask(np.ones((4, 4)), has_normal=np.ones((3, 4), bool))
     with pytest.raises(ValueError, match="brightness"):
         tablet_mask(np.ones(4))
+
+
+def test_morphology_is_scipy_ndimage_s():
+    # The OpenCV helpers must give scipy.ndimage's binary morphology exactly, borders too
+    # (outside the image is background for dilation and erosion alike).
+    from scipy import ndimage
+
+    from worker.recon.mask import _dilate, _erode, _fill_holes
+
+    rng = np.random.default_rng(3)
+    square = np.ones((3, 3), bool)
+    for t in range(12):
+        a = ndimage.gaussian_filter(rng.random((40 + t, 33)), 1.5) > 0.45 + 0.01 * t
+        a[: t % 3] = True  # shapes touching the border
+        for it in (1, 2):
+            np.testing.assert_array_equal(
+                _erode(_dilate(a, it), it), ndimage.binary_closing(a, square, iterations=it)
+            )
+            np.testing.assert_array_equal(
+                _dilate(_erode(a, it), it), ndimage.binary_opening(a, square, iterations=it)
+            )
+            np.testing.assert_array_equal(
+                _erode(a, it), ndimage.binary_erosion(a, square, iterations=it)
+            )
+        np.testing.assert_array_equal(_fill_holes(a), ndimage.binary_fill_holes(a))
+    for a in (np.ones((5, 6), bool), np.zeros((5, 6), bool)):
+        np.testing.assert_array_equal(_fill_holes(a), a)
