@@ -38,8 +38,17 @@ def _frame(normal):
     t = normal * -normal[..., :1]  # x − (x·N)·N with x = (1, 0, 0)
     t[..., 0] += 1.0
     t /= np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), 1e-12)
-    b = np.cross(normal, t)
-    return t, b
+    return t, _cross(normal, t)
+
+
+def _cross(a, b):
+    """np.cross(a, b) for (..., 3) arrays, component by component in the same order of
+    operations (the same values) without its moved-axis temporaries (several times faster)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape), np.result_type(a, b))
+    for k, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):
+        np.multiply(a[..., i], b[..., j], out=out[..., k])
+        out[..., k] -= a[..., j] * b[..., i]
+    return out
 
 
 def _lerp_index(n_out: int, samples: np.ndarray):

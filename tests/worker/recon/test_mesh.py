@@ -107,3 +107,16 @@ def test_glb_is_valid_gltf_with_textures_and_image_grid_uvs():
     # trimesh flips v on import (OpenGL convention): v_gltf = 1 − v_trimesh.
     assert uv[:, 0].min() == pytest.approx(0.5 / cols, rel=1e-5)
     assert (1 - uv[:, 1]).max() == pytest.approx((rows - 0.5) / rows, rel=1e-5)
+
+
+def test_glb_cross_product_is_numpys():
+    # The tangent frames' B = N × T: the same values as np.cross, NaN included.
+    from worker.recon.glb import _cross
+
+    rng = np.random.default_rng(0)
+    for dtype in (np.float32, np.float64):
+        a = rng.normal(size=(7, 5, 3)).astype(dtype)
+        b = rng.normal(size=(7, 5, 3)).astype(dtype)
+        a[0, 0, 1] = np.nan
+        np.testing.assert_array_equal(_cross(a, b), np.cross(a, b))
+        assert _cross(a, b).dtype == dtype
