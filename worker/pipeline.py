@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from scipy import ndimage
@@ -100,14 +101,22 @@ def reconstruct_bundle(
 
     t0 = time.perf_counter()
     report_progress("fusion", 0.84)
-    height, normals, used_surface = surface_of(
+    height, normals_of, used_surface = _surface(
         meas, mask, fusion=fusion, surface=surface, blur_sigma_px=blur_px
     )
-    timings["fusion"] = time.perf_counter() - t0
     if used_surface == "default":
-        t0 = time.perf_counter()
-        height = refine_walls(meas, height, mask, blur_sigma_px=blur_px)
+        # The normals are those of the fused surface before its cliff pixels are refined
+        # (`surface_of`): they are computed beside the refinement.
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            normals_job = pool.submit(normals_of)
+            timings["fusion"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            height = refine_walls(meas, height, mask, blur_sigma_px=blur_px)
+            normals = normals_job.result()
         timings["walls"] = time.perf_counter() - t0
+    else:
+        normals = normals_of()
+        timings["fusion"] = time.perf_counter() - t0
     mask &= np.isfinite(height)
     meas.finish()  # the colour stage ran in the background meanwhile
     if "color" in meas.timings:
@@ -229,18 +238,34 @@ def surface_of(
     blur_sigma_px: σ of the camera's PSF (`camera_blur_px`); the default fusion's heights
     are sharpened by it (`fusion.sharpen_heights`), the baselines are left as measured.
     """
+    h, normals_of, name = _surface(
+        meas, mask, fusion=fusion, surface=surface, blur_sigma_px=blur_sigma_px
+    )
+    return h, normals_of(), name
+
+
+def _surface(
+    meas: Measurements,
+    mask: np.ndarray,
+    *,
+    fusion: str = "default",
+    surface: str = "fused",
+    blur_sigma_px: float = 0.0,
+) -> tuple[np.ndarray, Callable[[], np.ndarray], str]:
+    """`surface_of`, with the normals as a function to call (the pipeline computes them
+    beside the cliff refinement)."""
     s = meas.pixel_size_um
     has_n = meas.normals is not None
     has_f = meas.fringe_height_um is not None and np.isfinite(meas.fringe_height_um[mask]).any()
     if surface == "fringe" or (has_f and not has_n):
         h = _fringe_surface(meas.fringe_height_um, mask)
-        return h, _normals_from_height(h, mask, s), "fringe"
+        return h, lambda: _normals_from_height(h, mask, s), "fringe"
     if surface == "normals" or not has_f:
         h = integrate_normals(meas.normals, pixel_size_um=s, mask=mask)
         if has_f:
             # Normals fix the shape only; the absolute level is the fringes' (median offset).
             h += np.float32(np.nanmedian(meas.fringe_height_um[mask] - h[mask]))
-        return h, _unit_normals(meas.normals, h, mask, s), "normals"
+        return h, lambda: _unit_normals(meas.normals, h, mask, s), "normals"
     sig_n = normal_sigma_rad(meas.residual, meas.lights_used, polar_deg=meas.photometric_polar_deg)
     sig_f, sigma_f = fringe_sigma_um(meas.fringe_height_um, mask, azimuths_used=meas.azimuths_used)
     crease = crease_sigma_um(meas.normals, pixel_size_um=s)
@@ -255,7 +280,7 @@ def surface_of(
             normal_sigma_rad=sig_n_typ,
             height_sigma_um=sigma_f,
         )
-        return h, _unit_normals(meas.normals, h, mask, s), "paper"
+        return h, lambda: _unit_normals(meas.normals, h, mask, s), "paper"
     # The normals' low-frequency bias is taken out by the fringe heights first.
     normals = correct_normal_bias(
         meas.normals,
@@ -276,7 +301,7 @@ def surface_of(
     )
     if blur_sigma_px > 0:
         h = sharpen_heights(h, mask, blur_sigma_px=blur_sigma_px, pixel_size_um=s)
-    return h, _unit_normals(meas.normals, h, mask, s), "default"
+    return h, lambda: _unit_normals(meas.normals, h, mask, s), "default"
 
 
 def refine_walls(
