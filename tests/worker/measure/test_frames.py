@@ -29,6 +29,21 @@ def test_groups_come_back_in_order_whatever_the_threads(workers, ahead):
         np.testing.assert_array_equal(stack[:, 0, 0], group)
 
 
+@pytest.mark.parametrize(("workers", "ahead"), [(1, 0), (3, 2)])
+def test_reused_buffers_hold_each_group_while_the_caller_has_it(workers, ahead):
+    groups = [[0, 1], [2, 3], [4], [5, 6], [7, 8], [9, 10], [11, 12]]
+    seen, buffers = [], set()
+    for stack, group in zip(
+        prefetch(_Bundle(), groups, workers=workers, ahead=ahead, reuse=True), groups, strict=True
+    ):
+        np.testing.assert_array_equal(stack[:, 0, 0], group)
+        seen.append(stack.copy())
+        buffers.add(id(stack))
+    assert [s[:, 0, 0].tolist() for s in seen] == groups
+    # Two-frame groups share at most ahead + 2 buffers (the caller's and those ahead).
+    assert len(buffers) <= ahead + 3
+
+
 def test_a_frame_that_cannot_be_decoded_fails_its_group():
     stacks = prefetch(_Bundle(), [[11, 12], [13, 14]], workers=2)
     np.testing.assert_array_equal(next(stacks)[:, 1, 1], [11, 12])
