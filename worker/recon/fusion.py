@@ -40,6 +40,8 @@ afterwards.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from worker.recon.integrate import (
@@ -127,19 +129,30 @@ def fuse_default(
     wx = _edge_weight(w_px[:, 1:], w_px[:, :-1])
     wy = _edge_weight(w_py[1:, :], w_py[:-1, :])
     tx, ty = cell_average_targets_um(gx, gy, pixel_size_um=s)
-    # The final solve's targets are also averaged across their edges where the slopes allow
-    # it; the weights and the variance factors stay those of the single-pixel targets (the
-    # averaged targets share pixels between neighbouring edges, which the factors, estimated
-    # as if edges were independent, would take for extra precision).
-    ax, ay = transverse_mean_slopes(
-        np.where(has_slope, gx, np.nan), np.where(has_slope, gy, np.nan)
-    )
-    sx, sy = cell_average_targets_um(ax, ay, pixel_size_um=s)
     # Mask pixels without a normal are bridged by a faint membrane (flat target) so that the
     # ones without a fringe height either follow their neighbours instead of floating free.
     in_x, in_y = m_c[:, 1:] & m_c[:, :-1], m_c[1:, :] & m_c[:-1, :]
-    wx, tx, sx = _bridge(wx, in_x, tx, sx)
-    wy, ty, sy = _bridge(wy, in_y, ty, sy)
+    gap_x, gap_y = in_x & ~(wx > 0), in_y & ~(wy > 0)
+    wx, tx = _bridge(wx, in_x, tx)
+    wy, ty = _bridge(wy, in_y, ty)
+
+    def final_targets():
+        # The final solve's targets are also averaged across their edges where the slopes
+        # allow it; the weights and the variance factors stay those of the single-pixel
+        # targets (the averaged targets share pixels between neighbouring edges, which the
+        # factors, estimated as if edges were independent, would take for extra precision).
+        ax, ay = transverse_mean_slopes(
+            np.where(has_slope, gx, np.nan), np.where(has_slope, gy, np.nan)
+        )
+        sx, sy = cell_average_targets_um(ax, ay, pixel_size_um=s)
+        return np.where(gap_x, np.float32(0), sx), np.where(gap_y, np.float32(0), sy)
+
+    if workers > 1:  # only the last solve needs them: computed beside the first one
+        pool = ThreadPoolExecutor(max_workers=1)
+        targets = pool.submit(final_targets).result
+        pool.shutdown(wait=False)  # the job runs on; nothing else is submitted
+    else:
+        targets = final_targets
 
     f_c = f[crop]
     has_f = m_c & np.isfinite(f_c) & np.isfinite(sig_f[crop])
@@ -173,6 +186,7 @@ def fuse_default(
         tx, ty, wx, wy, data_um=f_c, data_weight=lam, x0_um=x0, rtol=first_rtol, workers=workers
     )
     h = sol.height_um
+    sx, sy = targets()
     if variance_components and has_f.any():
         # One round of variance component estimation on the pilot solve: dividing each
         # class's weights by its factor balances the groups as the data say, and the
