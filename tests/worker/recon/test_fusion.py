@@ -66,6 +66,17 @@ def test_fused_heights_beat_both_inputs():
     assert abs(float(np.median(err))) < 0.2  # absolute heights come from the fringes
     assert _rms(err) < SIGMA_F_UM / 4
     assert _rms(err) < _rms(f[mask] - h[mask]) / 4
+    # Threads (DCTs, the last solve's targets beside the first) change nothing.
+    threaded = fuse_default(
+        n,
+        f,
+        pixel_size_um=S_UM,
+        mask=mask,
+        normal_sigma_rad=SIGMA_N_RAD,
+        height_sigma_um=SIGMA_F_UM,
+        workers=2,
+    )
+    np.testing.assert_array_equal(threaded, got)
 
 
 def test_fringe_outliers_are_rejected():
