@@ -70,8 +70,10 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress, *, workers: int = 1
     blur_key = next(iter(sets))
     # One decoding thread more than cores: a thread blocked on a read or the GIL leaves no
     # core idle (fringe stage 5.4–5.9 → 4.8–5.3 s at 1.3 Mpx on 2 cores, three groups ahead).
+    # Six groups ahead: the decoding goes on while an azimuth is unwrapped (with three the
+    # threads ran out of groups there and the cores idled; +130 MB).
     # Nothing below keeps a view of a stack past its iteration: buffers are reused.
-    stacks = prefetch(bundle, groups, workers=workers + 1, ahead=3, reuse=True)
+    stacks = prefetch(bundle, groups, workers=workers + 1, ahead=6, reuse=True)
     for i, stack in enumerate(stacks):
         key, level = index[i]
         # Modulation is kept for the finest object set and the camera blur's reference sets.
