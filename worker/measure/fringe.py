@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import warnings
 from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -51,6 +52,13 @@ def _fringe_sets(bundle, fringe, meas):
 
 
 def measure_fringes(bundle, fringe, meas, rho_ref, progress, *, workers: int = 1):
+    # What the stages after this one do not wait for runs beside it (the last azimuth's
+    # cliff samples, the maxima over azimuths beside the consensus and the rough heights).
+    with ThreadPoolExecutor(max_workers=1) as side:
+        _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side)
+
+
+def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side):
     sets = _fringe_sets(bundle, fringe, meas)
     if not sets:
         meas.warnings.append("fringe: no usable fringe set; heights not computed")
@@ -68,6 +76,7 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress, *, workers: int = 1
     amps: dict = defaultdict(list)  # per level (object B, reference B), for cliff_samples
     total = len(groups)
     blur_key = next(iter(sets))
+    cliff_jobs = []
     # One decoding thread more than cores: a thread blocked on a read or the GIL leaves no
     # core idle (fringe stage 5.4–5.9 → 4.8–5.3 s at 1.3 Mpx on 2 cores, three groups ahead).
     # Six groups ahead: the decoding goes on while an azimuth is unwrapped (with three the
@@ -122,8 +131,9 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress, *, workers: int = 1
             summary[f"{key[0]:g}"] = _unwrap_summary(un, ok, periods)
             heights.append(np.where(ok, h, np.nan).astype(np.float32))
             b_obj, b_ref = zip(*amps.pop(key), strict=True)
-            meas.cliff_samples.append(
-                cliff_samples(
+            cliff_jobs.append(
+                side.submit(
+                    cliff_samples,
                     heights[-1],
                     wrapped_az,
                     list(b_obj),
@@ -141,23 +151,32 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress, *, workers: int = 1
             period = sets[key][level][0]
             meas.reference_modulation[(*key, period)] = _central_median(ref_phase.modulation)
         progress("fringe", 0.02 + 0.5 * (i + 1) / total)
+    maxima = side.submit(_maxima, mods, ambient if meas.albedo is None else None)
     comb = consensus_azimuths(np.stack(heights), np.stack(sigmas), workers=workers)
     meas.fringe_height_um = comb.height_um
     meas.fringe_spread_um = comb.spread_um
     meas.fringe_sigma_um = comb.sigma_um
     meas.azimuths_used = comb.azimuths_used
-    with np.errstate(invalid="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        meas.modulation = np.nanmax(np.stack(mods), axis=0).astype(np.float32)
-        if meas.albedo is None:
-            meas.albedo = np.nanmax(np.stack(ambient), axis=0).astype(np.float32)
     meas.rough_height_um = _rough_height(comb.height_um)
+    meas.cliff_samples.extend(job.result() for job in cliff_jobs)
+    meas.modulation, albedo = maxima.result()
+    if albedo is not None:
+        meas.albedo = albedo
     meas.used["fringe_azimuths_deg"] = sorted({k[0] for k in sets})
     meas.used["fringe_periods_um"] = {
         f"{k[0]:g}": [float(p) for p, _, _ in levels] for k, levels in sets.items()
     }
     meas.used["fringe_sets"] = sum(len(v) for v in sets.values())
     meas.used["fringe_unwrap"] = {"azimuths": summary, "sets_with_harmonic": int(harmonic_sets)}
+
+
+def _maxima(mods, ambient):
+    """Per pixel, the largest modulation and mean level over the azimuths (NaN-aware)."""
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        modulation = np.nanmax(np.stack(mods), axis=0).astype(np.float32)
+        albedo = None if ambient is None else np.nanmax(np.stack(ambient), axis=0)
+    return modulation, None if albedo is None else albedo.astype(np.float32)
 
 
 def _unwrap_summary(un, ok, periods) -> dict:
