@@ -56,16 +56,32 @@ def measure_bundle(
     background = ThreadPoolExecutor(max_workers=1) if color_in_background else None
     with single_threaded_blas(), ThreadPoolExecutor(max_workers=1) as pool:
         # Colour needs normals, so it is decoded only with at least 3 photometric frames.
-        photo_stacks = color_stacks = None
-        if len(photo) >= 3:
-            photo_stacks = pool.submit(decode_with_references, bundle, photo)
+        jobs: dict = {}
+
+        def decode_photometric() -> None:
+            # Once every fringe frame is queued: the fringe stage's last groups and its
+            # unwrapping and consensus leave a core idle, which this decoding fills (started
+            # with the fringe stage it slowed its decoding down instead).
+            if jobs or len(photo) < 3:
+                return
+            jobs["photo"] = pool.submit(decode_with_references, bundle, photo)
             if color:
-                color_stacks = pool.submit(decode_with_references, bundle, color)
+                jobs["color"] = pool.submit(decode_with_references, bundle, color)
 
         t0 = time.perf_counter()
         progress("fringe", 0.02)
         if fringe:
-            measure_fringes(bundle, fringe, meas, rho_ref, progress, workers=workers)
+            measure_fringes(
+                bundle,
+                fringe,
+                meas,
+                rho_ref,
+                progress,
+                workers=workers,
+                on_queued=decode_photometric,
+            )
+        decode_photometric()
+        photo_stacks, color_stacks = jobs.get("photo"), jobs.get("color")
         meas.timings["fringe"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()

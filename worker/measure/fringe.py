@@ -51,14 +51,16 @@ def _fringe_sets(bundle, fringe, meas):
     return out
 
 
-def measure_fringes(bundle, fringe, meas, rho_ref, progress, *, workers: int = 1):
+def measure_fringes(bundle, fringe, meas, rho_ref, progress, *, workers: int = 1, on_queued=None):
+    """Fringe heights into `meas`; on_queued() is called once every fringe frame is queued
+    for decoding (the caller may then start decoding other frames)."""
     # What the stages after this one do not wait for runs beside it (the last azimuth's
     # cliff samples, the maxima over azimuths beside the consensus and the rough heights).
     with ThreadPoolExecutor(max_workers=1) as side:
-        _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side)
+        _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_queued)
 
 
-def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side):
+def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_queued):
     sets = _fringe_sets(bundle, fringe, meas)
     if not sets:
         meas.warnings.append("fringe: no usable fringe set; heights not computed")
@@ -82,8 +84,11 @@ def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side):
     # Six groups ahead: the decoding goes on while an azimuth is unwrapped (with three the
     # threads ran out of groups there and the cores idled; +130 MB).
     # Nothing below keeps a view of a stack past its iteration: buffers are reused.
-    stacks = prefetch(bundle, groups, workers=workers + 1, ahead=6, reuse=True)
+    ahead = 6
+    stacks = prefetch(bundle, groups, workers=workers + 1, ahead=ahead, reuse=True)
     for i, stack in enumerate(stacks):
+        if on_queued is not None and i == max(0, total - 1 - ahead):
+            on_queued()  # the prefetch has queued the frames of every group
         key, level = index[i]
         # Modulation is kept for the finest object set and the camera blur's reference sets.
         last = level == len(sets[key]) - 1

@@ -59,3 +59,27 @@ def test_fringe_heights_have_no_gross_errors(tmp_path, noise):
     summary = meas.used["fringe_unwrap"]["azimuths"]
     assert len(summary) == 4
     assert all(0 < a["kept"] <= 1 and 0 <= a["conflicts"] < a["kept"] for a in summary.values())
+
+
+def test_on_queued_is_called_once_whatever_the_number_of_groups(tmp_path):
+    # measure_bundle starts decoding the photometric frames from this call: it must come
+    # exactly once (also with fewer groups than the prefetch looks ahead) and not change
+    # the heights.
+    simulate_scan(tmp_path, seed=2, preset="quick", noise="default", size=(96, 80))
+    with open_bundle(tmp_path / "bundle") as bundle:
+        cam = bundle.manifest.camera
+        fringe = [f for f in bundle.frames if f.kind == "fringe" and f.target == "object"]
+        calls = []
+        results = []
+        for chosen in (fringe, [f for f in fringe if f.azimuth_deg == fringe[0].azimuth_deg]):
+            meas = Measurements(
+                pixel_size_um=float(cam.pixel_size_um), shape=(cam.height, cam.width)
+            )
+            measure_fringes(
+                bundle, chosen, meas, 0.95, lambda s, f: None, on_queued=lambda: calls.append(1)
+            )
+            results.append(meas.fringe_height_um)
+        plain = Measurements(pixel_size_um=float(cam.pixel_size_um), shape=(cam.height, cam.width))
+        measure_fringes(bundle, fringe, plain, 0.95, lambda s, f: None)
+    assert len(calls) == 2
+    np.testing.assert_array_equal(results[0], plain.fringe_height_um)
