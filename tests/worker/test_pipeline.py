@@ -112,3 +112,22 @@ def test_camera_blur_reuses_the_fringe_stage_modulation(tmp_path):
         reused = camera_blur_px(bundle, reference_modulation=meas.reference_modulation)
     assert decoded > 0
     assert reused == decoded
+
+
+def test_fringe_surface_median_is_scipy_s():
+    # The fringe-only surface's 5×5 median by OpenCV: ndimage.median_filter's values
+    # (edge-replicated borders), holes filled afterwards as before.
+    from worker.pipeline import _fringe_surface
+    from worker.recon.height import fill_holes
+
+    rng = np.random.default_rng(7)
+    h = (rng.normal(size=(30, 41)) * 50).astype(np.float32)
+    h[rng.random(h.shape) < 0.1] = np.nan
+    mask = np.ones(h.shape, bool)
+    mask[:3, :5] = False
+    m = np.where(mask, h, np.nan).astype(np.float32)
+    finite = np.isfinite(m)
+    fill = float(np.median(m[finite]))
+    med = ndimage.median_filter(np.where(finite, m, fill), size=5, mode="nearest")
+    expected = np.where(mask, fill_holes(np.where(finite, med, np.nan), mask), np.nan)
+    np.testing.assert_array_equal(_fringe_surface(h, mask), expected.astype(np.float32))
