@@ -2,12 +2,14 @@
 
     .venv/bin/python bench/reconstruct.py [--preset paper] [--seeds 0,1,2] [--noise default]
                                           [--size WxH] [--work DIR] [--no-speed]
-                                          [--no-accuracy]
+                                          [--no-accuracy] [--repeat 3]
 
 For each seed: simulate a scan (worker.simulate; kept in --work to be reused), then
-1. decode: the time to decode every image of the bundle to radiance (the floor);
+1. decode: the time to decode every image of the bundle to radiance (the floor), in a child
+   process;
 2. the whole pipeline (`reconstruct_bundle`, default fusion) in a child process: time per
    stage, total, and the child's peak resident memory (getrusage ru_maxrss);
+   both `--repeat` times, alternating which runs first; the table gives medians;
 3. accuracy (worker.recon.evaluate) and fusion time (wall and CPU) of the four surfaces:
    fringe heights alone (5×5 median), normals integrated alone, the paper's fusion, the
    default fusion (sharpened by the camera blur measured on the bundle, then its cliff
@@ -67,14 +69,19 @@ def simulate(work: Path, *, seed: int, preset: str, noise: str, size) -> Path:
     return out
 
 
-def decode_time(bundle_path: Path) -> tuple[float, float, int]:
-    """Wall and CPU seconds to decode every image to radiance, 8 at a time in threads."""
+def _decode_child(bundle_path, queue):
     with open_bundle(bundle_path) as b:
         frames = [f for f in b.frames if f.kind != "dark"]
         t0, c0 = time.perf_counter(), time.process_time()
         for i in range(0, len(frames), 8):
             b.radiance_many(frames[i : i + 8])
-        return time.perf_counter() - t0, time.process_time() - c0, len(frames)
+        queue.put((time.perf_counter() - t0, time.process_time() - c0, len(frames)))
+
+
+def decode_time(bundle_path: Path) -> tuple[float, float, int]:
+    """Wall and CPU seconds to decode every image to radiance, 8 at a time in threads, in a
+    fresh process like the pipeline's run (same start-up state for both)."""
+    return _in_child(_decode_child, str(bundle_path))
 
 
 def _child(bundle_path, out_dir, queue):
@@ -87,14 +94,33 @@ def _child(bundle_path, out_dir, queue):
     )
 
 
-def pipeline_run(bundle_path: Path, out_dir: Path) -> dict:
+def _in_child(target, *args):
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
-    proc = ctx.Process(target=_child, args=(str(bundle_path), str(out_dir), queue))
+    proc = ctx.Process(target=target, args=(*args, queue))
     proc.start()
     result = queue.get()
     proc.join()
     return result
+
+
+def pipeline_run(bundle_path: Path, out_dir: Path) -> dict:
+    return _in_child(_child, str(bundle_path), str(out_dir))
+
+
+def speed(bundle_path: Path, repeat: int) -> tuple[list[tuple[float, float, int]], list[dict]]:
+    """`repeat` decode runs and `repeat` pipeline runs, alternating which goes first: a run
+    straight after the other one's heavy I/O and allocation is slower, and alternating
+    spreads that evenly over both instead of favouring either."""
+    decodes, runs = [], []
+    for i in range(repeat):
+        with tempfile.TemporaryDirectory(prefix="bench-model-") as tmp:
+            if i % 2 == 0:
+                decodes.append(decode_time(bundle_path))
+            runs.append(pipeline_run(bundle_path, Path(tmp) / "model"))
+            if i % 2 == 1:
+                decodes.append(decode_time(bundle_path))
+    return decodes, runs
 
 
 def _wedge_parts(h, gt_h, wedges, inner, sel) -> tuple[float, float]:
@@ -175,6 +201,31 @@ def _summary(per_seed: dict[int, list[dict]]) -> None:
         )
 
 
+def _print_speed(seed: int, decodes: list, runs: list[dict]) -> None:
+    """Median of each figure over the runs (the table), and every run's total / decode."""
+    med = np.median
+    nframes = decodes[0][2]
+    dec, dec_cpu = med([d[0] for d in decodes]), med([d[1] for d in decodes])
+    print(f"\n### Speed and memory, seed {seed} ({nframes} images, median of {len(runs)} runs)\n")
+    print("| stage | seconds |\n|---|---|")
+    for k in runs[0]["timings"]:
+        # The colour stage runs in a thread beside mask, fusion and walls.
+        label = "color (background, overlaps mask to walls)" if k == "color" else k
+        print(f"| {label} | {med([r['timings'].get(k, np.nan) for r in runs]):.2f} |")
+    print(f"| decode only (all images) | {dec:.2f} |")
+    total = med([r["timings"]["total"] for r in runs])
+    cpu = med([r["cpu"] for r in runs])
+    rss = max(r["maxrss_mib"] for r in runs)
+    each = ", ".join(
+        f"{r['timings']['total']:.2f}/{d[0]:.2f}" for r, d in zip(runs, decodes, strict=True)
+    )
+    print(
+        f"\ntotal / decode = {total / dec:.2f} (wall, medians); CPU seconds: pipeline {cpu:.1f}, "
+        f"decode {dec_cpu:.1f} (ratio {cpu / dec_cpu:.2f}); peak RSS {rss:.0f} MiB"
+        f"\nruns (total / decode s): {each}"
+    )
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--preset", default="paper")
@@ -184,6 +235,9 @@ def main(argv=None) -> int:
     p.add_argument("--work", default=None, help="folder for simulated scans (kept)")
     p.add_argument("--no-speed", action="store_true", help="accuracy table only")
     p.add_argument("--no-accuracy", action="store_true", help="speed table only")
+    p.add_argument(
+        "--repeat", type=int, default=3, help="decode and pipeline runs for the speed table"
+    )
     args = p.parse_args(argv)
     size = tuple(int(v) for v in args.size.split("x")) if args.size else None
     work = Path(args.work or tempfile.mkdtemp(prefix="bench-recon-"))
@@ -194,22 +248,7 @@ def main(argv=None) -> int:
     for seed in seeds:
         sim = simulate(work, seed=seed, preset=args.preset, noise=args.noise, size=size)
         if not args.no_speed:
-            dec, dec_cpu, nframes = decode_time(sim / "bundle")
-            with tempfile.TemporaryDirectory(prefix="bench-model-") as tmp:
-                run = pipeline_run(sim / "bundle", Path(tmp) / "model")
-            t = run["timings"]
-            print(f"\n### Speed and memory, seed {seed} ({nframes} images)\n")
-            print("| stage | seconds |\n|---|---|")
-            for k, v in t.items():
-                # The colour stage runs in a thread beside mask, fusion and walls.
-                label = "color (background, overlaps mask to walls)" if k == "color" else k
-                print(f"| {label} | {v:.2f} |")
-            print(f"| decode only (all images) | {dec:.2f} |")
-            print(
-                f"\ntotal / decode = {t['total'] / dec:.2f} (wall); CPU seconds: pipeline "
-                f"{run['cpu']:.1f}, decode {dec_cpu:.1f} (ratio {run['cpu'] / dec_cpu:.2f}); "
-                f"peak RSS {run['maxrss_mib']:.0f} MiB"
-            )
+            _print_speed(seed, *speed(sim / "bundle", args.repeat))
         if args.no_accuracy:
             continue
         rows, blur = accuracy(sim)
