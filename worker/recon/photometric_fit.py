@@ -26,6 +26,17 @@ _MIRROR_CONES_DEG = (15.0, 30.0)
 _DENSE_LIGHTS = 32
 
 
+def _count(mask: np.ndarray) -> np.ndarray:
+    """Per pixel, the number of True samples of a (K, n) bool array, int64 as ``sum(axis=0)``.
+
+    Summed as bytes (a bool sum casts every element to int64 first; this is ~8× faster,
+    and the photometric fit counts inliers some thousand times per scan).
+    """
+    if mask.shape[0] >= 256:
+        return mask.sum(axis=0)
+    return mask.view(np.uint8).sum(axis=0, dtype=np.uint8).astype(np.int64)
+
+
 def _solve_sym3(m6: np.ndarray, rhs: np.ndarray, min_condition: float):
     """Solve M x = rhs for batched symmetric 3×3 M given as (N, 6) = (a, b, c, d, e, f).
 
@@ -66,7 +77,7 @@ def _fit(s, weight, lights32, ll6, *, leverage=False):
     w = weight.astype(np.float32, copy=False)
     m6 = w.T @ ll6
     rhs = (w * s).T @ lights32
-    enough = (weight > 0).sum(axis=0) >= 3
+    enough = _count(weight > 0) >= 3
     b, ok, inv6 = _solve_sym3(m6, rhs, 1e-3)
     ok &= enough
     if not leverage:
@@ -96,7 +107,7 @@ def initial_inliers(s: np.ndarray, valid: np.ndarray, shadow_fraction: float, fl
     lit = valid & (s > np.float32(floor))
     ranked = _sorted_per_pixel(np.where(lit, s, -np.inf))
     # The upper quartile of the lit samples ignores up to a quarter of specular spikes.
-    idx = np.clip(k - 1 - lit.sum(axis=0) // 4, 0, k - 1)
+    idx = np.clip(k - 1 - _count(lit) // 4, 0, k - 1)
     level = ranked[np.arange(ranked.shape[0]), idx]
     level = np.where(np.isfinite(level), level, 0.0).astype(np.float32)
     # Only gross highlights are cut here: when many lights are shadowed the upper quartile
@@ -197,9 +208,9 @@ class Model:
         # attached shadow would leave it dark.  (With four lights an exact fit through a
         # highlight that banishes a good sample there otherwise ties with the right one.)
         below = cand & ((r < -tol) | (~front & (r > tol)))
-        m = inl.sum(axis=0)
+        m = _count(inl)
         misfit = np.where(inl, (r / tol) ** 2, 0.0).sum(axis=0) / np.maximum(m, 1)
-        return np.where(ok, m - below.sum(axis=0) - 0.01 * misfit, -np.inf)
+        return np.where(ok, m - _count(below) - 0.01 * misfit, -np.inf)
 
     def trim(self, inl, b, ok, ratio=None):
         """Backward elimination on studentised residuals r/sqrt(1 − h), one sample per round.
@@ -219,7 +230,7 @@ class Model:
                     r, tol, _ = self.residual(b)
                     ratio = np.divide(np.abs(r, out=r), tol, out=r)
                 raw = np.where(inl, ratio, np.float32(0.0))
-                many = inl.sum(axis=0) > 3
+                many = _count(inl) > 3
             else:
                 if cols.size == 0:
                     break
@@ -238,7 +249,7 @@ class Model:
             # Externally studentised: the deleted residual r/(1 − h) has variance
             # σ²/(1 − h), so r/sqrt(1 − h) is compared with the tolerance.
             ratio = raw / np.sqrt(np.maximum(1.0 - lev, np.float32(1e-3)))
-            n_in = sub.sum(axis=0)
+            n_in = _count(sub)
             worst = ratio.max(axis=0)
             bad = (worst > 1.0) & (n_in > 3)
             cols, sub, ratio, n_in, worst = (
@@ -275,7 +286,7 @@ def _hypotheses(model, cand, delta):
     k, n = s.shape
     cols = np.arange(n)
     ranked = np.argsort(np.where(cand, s, -np.inf), axis=0)
-    n_cand = cand.sum(axis=0)
+    n_cand = _count(cand)
     drops = (
         [ranked[k - 1]],
         [ranked[k - 1], ranked[k - 2]],
@@ -314,7 +325,7 @@ def _settle(model, cand, b0, ok0):
     inl = np.less_equal(ratio, tol)
     inl &= front
     inl &= model.valid
-    inl = np.where((inl.sum(axis=0) >= 3)[None, :], inl, cand)
+    inl = np.where((_count(inl) >= 3)[None, :], inl, cand)
     # |r|/tol of the start, handed to the trim for the pixels whose fit stays b0.
     ratio /= tol
     b, ok = b0.copy(), ok0.copy()
@@ -363,7 +374,7 @@ def robust_fit(model, cand, iterations):
         sub = model.sub(cols)
         new = sub.select(b[cols])
         # Re-admission never drops a pixel below three lights.
-        new = np.where((new.sum(axis=0) >= 3)[None, :], new, inl[:, cols])
+        new = np.where((_count(new) >= 3)[None, :], new, inl[:, cols])
         moved = np.any(new != inl[:, cols], axis=0)
         cols, new = cols[moved], new[:, moved]
         if cols.size == 0:
@@ -391,7 +402,7 @@ def estimate_sigma(s, valid, lights32, ll6, shadow_fraction, tolerance):
     if not keep.any():
         return 0.0
     resid = np.abs(s - lights32 @ b.astype(np.float32).T)[keep]
-    dof = float(np.mean(keep.sum(axis=0)[ok]))
+    dof = float(np.mean(_count(keep)[ok]))
     # MAD of residuals of a 3-parameter fit from m samples under-reads σ by sqrt((m-3)/m).
     return float(1.4826 * np.median(resid) * np.sqrt(dof / max(dof - 3.0, 1.0)))
 
@@ -448,7 +459,7 @@ def mirror_trim(model, inl, b, ok, sigma, *, rounds=12, k_sigma=2.5, max_cone_de
     min_cos = np.float32(np.cos(np.radians(max_cone_deg)))
     # First round on every pixel without gathering columns: most have nothing to peel.
     j, r_j, cand = _mirror_suspect(model, model.s, inl, b, thr, min_cos)
-    cand &= ok & (inl.sum(axis=0) > 3)
+    cand &= ok & (_count(inl) > 3)
     cols = np.flatnonzero(cand)
     j, r_j = j[cols], r_j[cols]
     for _ in range(rounds):
@@ -468,7 +479,7 @@ def mirror_trim(model, inl, b, ok, sigma, *, rounds=12, k_sigma=2.5, max_cone_de
         cols, sub_inl, b_new = cols[ok_new], sub_inl[:, ok_new], b_new[ok_new]
         inl[:, cols] = sub_inl
         b[cols] = b_new
-        more = sub_inl.sum(axis=0) > 3
+        more = _count(sub_inl) > 3
         cols, sub_inl = cols[more], sub_inl[:, more]
         j, r_j, cand = _mirror_suspect(model, model.s[:, cols], sub_inl, b[cols], thr, min_cos)
         cols, j, r_j = cols[cand], j[cand], r_j[cand]
@@ -519,12 +530,12 @@ def cone_resolve(model, cand, inl, b, ok, sigma, *, cone_deg=20.0, k_sigma=1.5, 
     bc = b.astype(np.float32)
     rho = np.sqrt(np.einsum("ni,ni->n", bc, bc))
     cos_h = model.half32 @ (bc / np.maximum(rho, np.float32(1e-30))[:, None]).T
-    few = inl.sum(axis=0) <= 4
+    few = _count(inl) <= 4
     cone_cos = np.where(few, np.cos(np.radians(cone_deg + 10.0)), np.cos(np.radians(cone_deg)))
     near = (cos_h > cone_cos.astype(np.float32)) & model.valid
     # Only inliers are suspects: a highlight the fit already rejects needs no re-solve.
     suspect = near & inl & ((model.s - model.lights32 @ bc.T > np.float32(sigma)) | few[None])
-    redo = ok & np.any(suspect, axis=0) & ((model.valid & ~near).sum(axis=0) >= 3)
+    redo = ok & np.any(suspect, axis=0) & (_count(model.valid & ~near) >= 3)
     cols = np.flatnonzero(redo)
     if cols.size == 0:
         return inl, b
@@ -537,7 +548,7 @@ def cone_resolve(model, cand, inl, b, ok, sigma, *, cone_deg=20.0, k_sigma=1.5, 
     b0, ok0 = _fit(sub.s, inl[:, cols] & ~near, sub.lights32, sub.ll6)
     inl2, b2, ok2 = _settle(sub, sub_cand, b0, ok0)
     # The evidence: the inliers the cone takes away must sit above the new fit.
-    m = dropped.sum(axis=0)
+    m = _count(dropped)
     excess = np.where(dropped, sub.s - sub.lights32 @ b2.astype(np.float32).T, 0.0).sum(axis=0)
     u = (dropped.T.astype(np.float32) @ sub.lights32) / m[:, None]
     x, ok_m, _ = _solve_sym3(inl2.T.astype(np.float32) @ sub.ll6, u, 1e-3)

@@ -109,3 +109,16 @@ def test_fewer_than_three_lit_lights_give_nan():
     assert np.all(np.isnan(res.normals[:, 4:])) and np.all(res.lights_used[:, 4:] == 0)
     # 16 lights at 45°, σ = 0.002 on ρ = 0.6: σ_θ ≈ 0.002/(0.6·sin 45°·sqrt(8)) ≈ 0.1°.
     assert np.all(_angle_deg(res.normals[:, :4], n) < 1.0)
+
+
+@pytest.mark.parametrize("k", [4, 16, 255, 300])
+def test_count_matches_a_bool_sum(k):
+    # Counts are exact integers: the byte-wise sum must equal numpy's bool sum, dtype too,
+    # including on a strided view and past the uint8 range (K ≥ 256 falls back).
+    from worker.recon.photometric_fit import _count
+
+    mask = np.random.default_rng(k).random((k, 1001)) < 0.7
+    for m in (mask, mask[:, ::3], np.ones_like(mask)):
+        got = _count(m)
+        assert got.dtype == m.sum(axis=0).dtype
+        np.testing.assert_array_equal(got, m.sum(axis=0))
