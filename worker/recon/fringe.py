@@ -22,6 +22,9 @@ import numpy as np
 
 from worker.recon.unwrap import wrap_phase
 
+# Pixels per block of rows in the per-pixel passes: a few arrays of it fit the L2 cache.
+_BLOCK_PIXELS = 1 << 15
+
 __all__ = [
     "CarrePhase",
     "FringePhase",
@@ -114,28 +117,37 @@ def four_step_phase(frames: np.ndarray, *, modulation: bool = True) -> FringePha
     flat-fielded: the phase does not depend on the scale).  modulation: False leaves B/A
     out (None), for callers that use it for some sets only.
     """
-    i0, i90, i180, i270 = _frames("frames", frames)
-    s = i270 - i90
-    c = i0 - i180
-    phase = np.arctan2(s, c)
-    # sqrt(s² + c²) in place: np.hypot is 3× slower and its overflow care is not needed here.
-    s *= s
-    c *= c
-    s += c
-    amp = np.sqrt(s, out=s)
-    amp *= np.float32(0.5)
-    even = i0 + i180
-    odd = i90 + i270
-    mean = even + odd
-    mean *= np.float32(0.25)
-    even -= odd
-    even *= np.float32(0.5)
-    mod = None
-    if modulation:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            mod = np.divide(amp, mean)
-        mod[~(mean > 0)] = np.nan
-    return FringePhase(phase_rad=phase, modulation=mod, amplitude=amp, mean=mean, residual=even)
+    f = _frames("frames", frames)
+    rows, cols = f.shape[1:]
+    phase, amp, mean, residual = (np.empty((rows, cols), np.float32) for _ in range(4))
+    mod = np.empty((rows, cols), np.float32) if modulation else None
+    # Blocks of rows that stay in the CPU cache: the dozen passes below over whole 1.3 Mpx
+    # frames were bound by memory bandwidth, which the frame decoding shares (80 sets of a
+    # paper scan: 0.28 → 0.22 CPU s cold, more under the decoding); same values.
+    step = max(1, _BLOCK_PIXELS // max(cols, 1))
+    for r0 in range(0, rows, step):
+        sl = slice(r0, r0 + step)
+        i0, i90, i180, i270 = f[:, sl]
+        s = np.subtract(i270, i90)
+        c = np.subtract(i0, i180)
+        np.arctan2(s, c, out=phase[sl])
+        # sqrt(s² + c²) in place: np.hypot is 3× slower and its overflow care is not needed.
+        s *= s
+        c *= c
+        s += c
+        b = np.sqrt(s, out=amp[sl])
+        b *= np.float32(0.5)
+        even = np.add(i0, i180, out=residual[sl])
+        odd = np.add(i90, i270, out=c)
+        a = np.add(even, odd, out=mean[sl])
+        a *= np.float32(0.25)
+        even -= odd
+        even *= np.float32(0.5)
+        if mod is not None:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                m = np.divide(b, a, out=mod[sl])
+            m[~(a > 0)] = np.nan
+    return FringePhase(phase_rad=phase, modulation=mod, amplitude=amp, mean=mean, residual=residual)
 
 
 def intensity_noise(

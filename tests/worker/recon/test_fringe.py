@@ -246,3 +246,27 @@ def test_bin_medians_are_those_of_the_array_split_bins(n):
     xa, yv = _bin_medians(a[order], b[order], 12)
     np.testing.assert_array_equal(xa, [np.median(a[i]) for i in bins])
     np.testing.assert_array_equal(yv, [np.median(b[i]) for i in bins])
+
+
+def test_four_step_in_blocks_of_rows_gives_the_whole_frame_formulas():
+    # Rows are processed in cache-sized blocks (the last one partial): each pixel must get
+    # the float32 values of the whole-frame expressions, bit for bit, whatever its block.
+    from worker.recon.fringe import _BLOCK_PIXELS
+
+    rng = np.random.default_rng(31)
+    cols = 1000
+    rows = 2 * (_BLOCK_PIXELS // cols) + 5
+    frames = rng.uniform(0.0, 1.0, (4, rows, cols)).astype(np.float32)
+    frames[:, -1, :3] = 0.0  # A = 0 in the last, partial block: modulation NaN
+    res = four_step_phase(frames)
+    i0, i90, i180, i270 = frames
+    s, c = i270 - i90, i0 - i180
+    amp = np.sqrt(s * s + c * c) * np.float32(0.5)
+    mean = ((i0 + i180) + (i90 + i270)) * np.float32(0.25)
+    np.testing.assert_array_equal(res.phase_rad, np.arctan2(s, c))
+    np.testing.assert_array_equal(res.amplitude, amp)
+    np.testing.assert_array_equal(res.mean, mean)
+    np.testing.assert_array_equal(res.residual, ((i0 + i180) - (i90 + i270)) * np.float32(0.5))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        np.testing.assert_array_equal(res.modulation, np.where(mean > 0, amp / mean, np.nan))
+    assert np.isnan(res.modulation[-1, :3]).all()
