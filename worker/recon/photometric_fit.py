@@ -44,6 +44,20 @@ def _solve_sym3(m6: np.ndarray, rhs: np.ndarray, min_condition: float):
     temporaries).  Returns x (N, 3) float64, a bool mask of the systems whose normalised
     determinant det/(trace/3)^3 exceeds ``min_condition``, and M⁻¹ as (N, 6) (0 where not ok).
     """
+    cof, ok = _inverse_sym3(m6, min_condition)
+    i11, i12, i13, i22, i23, i33 = cof
+    r0, r1, r2 = np.ascontiguousarray(rhs.T, dtype=np.float64)
+    x = np.empty((m6.shape[0], 3))
+    x[:, 0] = i11 * r0 + i12 * r1 + i13 * r2
+    x[:, 1] = i12 * r0 + i22 * r1 + i23 * r2
+    x[:, 2] = i13 * r0 + i23 * r1 + i33 * r2
+    inv6 = cof.T
+    return x, ok, inv6
+
+
+def _inverse_sym3(m6: np.ndarray, min_condition: float):
+    """M⁻¹ of batched symmetric 3×3 M, (N, 6) as in :func:`_solve_sym3`, by cofactors:
+    returns it as (6, N) float64 (0 where not ok) and the conditioning mask ``ok``."""
     # Rows of a (6, N) array: every term below is a contiguous pass.
     a, b, c, d, e, f = np.ascontiguousarray(m6.T, dtype=np.float64)
     cof = np.empty((6, m6.shape[0]))
@@ -58,33 +72,29 @@ def _solve_sym3(m6: np.ndarray, rhs: np.ndarray, min_condition: float):
     with np.errstate(divide="ignore", invalid="ignore"):
         ok = det > min_condition * tr**3
         cof *= np.where(ok, 1.0 / det, 0.0)
-    i11, i12, i13, i22, i23, i33 = cof
-    r0, r1, r2 = np.ascontiguousarray(rhs.T, dtype=np.float64)
-    x = np.empty((m6.shape[0], 3))
-    x[:, 0] = i11 * r0 + i12 * r1 + i13 * r2
-    x[:, 1] = i12 * r0 + i22 * r1 + i23 * r2
-    x[:, 2] = i13 * r0 + i23 * r1 + i33 * r2
-    inv6 = cof.T
-    return x, ok, inv6
+    return cof, ok
 
 
-def _fit(s, weight, lights32, ll6, *, leverage=False):
-    """Weighted least-squares b per pixel; s, weight (K, N), weight 0 leaves a sample out.
-
-    With ``leverage`` also returns h (K, N) = l_kᵀ M⁻¹ l_k, the hat-matrix diagonal of each
-    inlier (unit weights), for deleted residuals r/(1 − h).
-    """
+def _fit(s, weight, lights32, ll6):
+    """Weighted least-squares b per pixel; s, weight (K, N), weight 0 leaves a sample out."""
     w = weight.astype(np.float32, copy=False)
     m6 = w.T @ ll6
     rhs = (w * s).T @ lights32
     enough = _count(weight > 0) >= 3
-    b, ok, inv6 = _solve_sym3(m6, rhs, 1e-3)
+    b, ok, _ = _solve_sym3(m6, rhs, 1e-3)
     ok &= enough
-    if not leverage:
-        return b, ok
+    return b, ok
+
+
+def _leverage(inliers, ll6):
+    """h (K, N) = l_kᵀ M⁻¹ l_k, M = Σ l lᵀ over each pixel's ``inliers`` (K, N) bool: the
+    hat-matrix diagonal of the unit-weight fit, for deleted residuals r/(1 − h); 0 where M
+    is ill-conditioned.  Only M is needed, not the fit (the trims called _fit for it)."""
+    m6 = inliers.astype(np.float32).T @ ll6
+    cof, _ = _inverse_sym3(m6, 1e-3)
     # Off-diagonal terms of lᵀ M⁻¹ l appear twice.
     ll6d = ll6 * np.array([1, 2, 2, 1, 2, 1], dtype=np.float32)
-    return b, ok, (np.ascontiguousarray(inv6, dtype=np.float32) @ ll6d.T).T
+    return (np.ascontiguousarray(cof.T, dtype=np.float32) @ ll6d.T).T
 
 
 def _sorted_per_pixel(x: np.ndarray) -> np.ndarray:
@@ -245,7 +255,7 @@ class Model:
             sub, raw = inl[:, cols], raw[:, near]
             if cols.size == 0:
                 break
-            _, _, lev = _fit(self.s[:, cols], sub, self.lights32, self.ll6, leverage=True)
+            lev = _leverage(sub, self.ll6)
             # Externally studentised: the deleted residual r/(1 − h) has variance
             # σ²/(1 − h), so r/sqrt(1 − h) is compared with the tolerance.
             ratio = raw / np.sqrt(np.maximum(1.0 - lev, np.float32(1e-3)))
@@ -466,7 +476,7 @@ def mirror_trim(model, inl, b, ok, sigma, *, rounds=12, k_sigma=2.5, max_cone_de
         if cols.size == 0:
             break
         sub_inl = inl[:, cols]
-        _, _, lev = _fit(model.s[:, cols], sub_inl, model.lights32, model.ll6, leverage=True)
+        lev = _leverage(sub_inl, model.ll6)
         h_j = lev[j, np.arange(cols.size)]
         z = r_j / np.sqrt(np.maximum(1.0 - h_j, np.float32(1e-3)))
         drop = z > thr

@@ -122,3 +122,24 @@ def test_count_matches_a_bool_sum(k):
         got = _count(m)
         assert got.dtype == m.sum(axis=0).dtype
         np.testing.assert_array_equal(got, m.sum(axis=0))
+
+
+def test_leverage_is_the_hat_matrix_diagonal():
+    # h_k = l_kᵀ (Σ_inliers l lᵀ)⁻¹ l_k, the diagonal of L (LᵀL)⁻¹ Lᵀ over each pixel's
+    # inliers; float32 products of unit vectors: agreement to ~1e-5 relative.
+    from worker.recon.photometric_fit import _leverage
+
+    rng = np.random.default_rng(5)
+    lights = light_directions(np.arange(16) * 22.5, 45.0)
+    iu = np.triu_indices(3)
+    ll6 = (lights[:, :, None] * lights[:, None, :])[:, iu[0], iu[1]].astype(np.float32)
+    inl = rng.random((16, 50)) < 0.6
+    inl[:, 0] = False
+    inl[[0, 5, 10], 0] = True  # three lights: exactly determined, h = 1 on each
+    lev = _leverage(inl, ll6)
+    assert lev.shape == inl.shape
+    for p in range(inl.shape[1]):
+        sel = lights[inl[:, p]]
+        h = np.einsum("ki,ij,kj->k", lights, np.linalg.inv(sel.T @ sel), lights)
+        np.testing.assert_allclose(lev[:, p], h, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(lev[[0, 5, 10], 0], 1.0, rtol=1e-4)
