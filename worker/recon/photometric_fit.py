@@ -94,7 +94,8 @@ def _leverage(inliers, ll6):
     cof, _ = _inverse_sym3(m6, 1e-3)
     # Off-diagonal terms of lᵀ M⁻¹ l appear twice.
     ll6d = ll6 * np.array([1, 2, 2, 1, 2, 1], dtype=np.float32)
-    return (np.ascontiguousarray(cof.T, dtype=np.float32) @ ll6d.T).T
+    # (K, 6) @ (6, N): h comes out C-ordered (K, N) like the residuals it scales.
+    return ll6d @ cof.astype(np.float32)
 
 
 def _sorted_per_pixel(x: np.ndarray) -> np.ndarray:
