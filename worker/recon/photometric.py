@@ -207,9 +207,9 @@ def photometric_stereo(
             if mask is not None
             else slice(start, min(start + chunk, pix.size))
         )
-        s = flat[:, idx].astype(np.float32)
+        s = flat[:, idx].astype(np.float32)  # a copy: zeroed in place below
         valid = np.isfinite(s)
-        s = np.where(valid, s, np.float32(0.0))
+        np.nan_to_num(s, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
         cand, _ = initial_inliers(s, valid, shadow_fraction, abs_tol)
         model = Model(s, valid, lights32, ll6, shadow_fraction, outlier_tolerance, abs_tol, half32)
         b, ok, inl = robust_fit(model, cand, max_iterations)

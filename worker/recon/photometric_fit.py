@@ -434,7 +434,9 @@ def asymmetric_refine(model, inl, b, ok, sigma, iterations=1):
         # The first round looks at every pixel: no gathered copy of the chunk.
         every = cols.size == model.s.shape[1]
         sub = model if every else model.sub(cols)
-        r, _, _ = sub.residual(b.copy() if every else b[cols])
+        # The signed residual alone (Model.residual's tolerance and terminator passes are
+        # not needed here).
+        r = np.subtract(sub.s, sub.lights32 @ (b if every else b[cols]).astype(np.float32).T)
         high = (inl if every else inl[:, cols]) & (r > two_sigma)
         keep = np.any(high, axis=0) & ok[cols]
         cols, r, high = cols[keep], r[:, keep], high[:, keep]
