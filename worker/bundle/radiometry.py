@@ -14,15 +14,22 @@ import numpy as np
 from worker.bundle.matching import numbers_equal
 
 
-def linearize(values: np.ndarray, *, bit_depth: int, gamma: float) -> np.ndarray:
+def linearize(
+    values: np.ndarray, *, bit_depth: int, gamma: float, out: np.ndarray | None = None
+) -> np.ndarray:
     """lin(v): stored values (H, W) uint8/uint16 or float32 -> linear radiance (H, W) float32.
 
     Integer values are scaled by 1 / (2^bit_depth − 1) and raised to ``gamma``; float32
     values are returned as a float32 copy (bit depth and gamma do not apply). The input is
-    never modified.
+    never modified.  ``out``: (H, W) float32 array to write lin(v) into (same values).
     """
+    if out is not None and (out.shape != values.shape or out.dtype != np.float32):
+        raise ValueError(f"out: must be float32 of shape {values.shape}")
     if values.dtype == np.float32:
-        return values.copy()
+        if out is None:
+            return values.copy()
+        np.copyto(out, values)
+        return out
     if values.dtype not in (np.uint8, np.uint16):
         raise ValueError(f"values: dtype must be uint8, uint16 or float32, not {values.dtype}")
     if not 8 <= bit_depth <= 16:
@@ -31,13 +38,14 @@ def linearize(values: np.ndarray, *, bit_depth: int, gamma: float) -> np.ndarray
         raise ValueError(f"gamma: must be > 0, not {gamma}")
     full_scale = float(2**bit_depth - 1)
     if gamma == 1.0:
-        out = values.astype(np.float32)
-        out *= np.float32(1.0 / full_scale)
-        return out
+        # The values are cast to float32 exactly, then scaled: astype and *= in one pass.
+        return np.multiply(values, np.float32(1.0 / full_scale), out=out, dtype=np.float32)
     # A lookup table makes any gamma cost one gather instead of a pow per pixel.
     levels = np.arange(np.iinfo(values.dtype).max + 1, dtype=np.float64)
     lut = np.power(levels / full_scale, gamma).astype(np.float32)
-    return lut[values]
+    # mode='clip' changes nothing (the table covers the dtype's range) but lets np.take
+    # write into ``out`` without its buffered copy.
+    return np.take(lut, values, out=out, mode="clip")
 
 
 def select_dark(exposure: float, darks: Sequence[tuple[int, float]]) -> int | None:
@@ -69,14 +77,17 @@ def radiance(
     bit_depth: int,
     gamma: float,
     exposure: float,
+    out: np.ndarray | None = None,
 ) -> np.ndarray:
     """L = (lin(v) − lin(v_dark)) / exposure, (H, W) float32.
 
     ``dark_linear`` is lin(v_dark) (H, W) float32 from `linearize`, or None for no dark (0).
+    ``out``: (H, W) float32 array to write L into, e.g. a slice of the caller's stack (no
+    fresh frame and no copy per image).
     """
     if not exposure > 0:
         raise ValueError(f"exposure: must be > 0, not {exposure}")
-    out = linearize(values, bit_depth=bit_depth, gamma=gamma)
+    out = linearize(values, bit_depth=bit_depth, gamma=gamma, out=out)
     if dark_linear is not None:
         if dark_linear.shape != out.shape:
             raise ValueError(f"dark_linear: shape {dark_linear.shape} != values {out.shape}")

@@ -123,10 +123,11 @@ class Bundle:
                 self._dark_cache[dark.index] = cached
             return cached
 
-    def radiance(self, frame: Frame | int) -> np.ndarray:
+    def radiance(self, frame: Frame | int, *, out: np.ndarray | None = None) -> np.ndarray:
         """L = (lin(v) − lin(v_dark)) / exposure, (H, W) float32 (SCAN_BUNDLE.md).
 
         For a dark frame itself: lin(v) / exposure (no dark is subtracted from a dark).
+        ``out``: (H, W) float32 array to write L into (returned).
         """
         f = self._frame(frame)
         cam = self.manifest.camera
@@ -137,6 +138,7 @@ class Bundle:
             bit_depth=cam.bit_depth,
             gamma=cam.response_gamma,
             exposure=f.exposure,
+            out=out,
         )
 
     def radiance_many(

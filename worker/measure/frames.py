@@ -33,7 +33,7 @@ def prefetch(
     spare: list[np.ndarray] = []
 
     def fill(stack: np.ndarray, i: int, frame) -> None:
-        stack[i] = bundle.radiance(frame)
+        bundle.radiance(frame, out=stack[i])  # no fresh frame and copy per image
 
     with ThreadPoolExecutor(max_workers=workers) as pool:
         nxt = 0

@@ -72,3 +72,25 @@ def test_radiance_formula() -> None:
     assert got.dtype == np.float32
     no_dark = radiance(v, None, bit_depth=12, gamma=1.0, exposure=1.0)
     np.testing.assert_allclose(no_dark, v / 4095, rtol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("dtype", "bit_depth", "gamma"),
+    [(np.uint8, 8, 1.0), (np.uint16, 12, 1.0), (np.uint16, 12, 2.2), (np.float32, 12, 2.2)],
+)
+def test_radiance_into_out_gives_the_same_values(dtype, bit_depth: int, gamma: float) -> None:
+    # out= (the measurement stages' stacks) must change where L goes, not one bit of it.
+    rng = np.random.default_rng(bit_depth)
+    if dtype == np.float32:
+        v = rng.uniform(0, 1, (9, 7)).astype(np.float32)
+    else:
+        v = rng.integers(0, 2**bit_depth, size=(9, 7), dtype=dtype)
+    dark = linearize(np.full((9, 7), 3, np.uint16), bit_depth=12, gamma=1.0)
+    for d, exposure in ((None, 1.0), (dark, 0.5)):
+        want = radiance(v, d, bit_depth=bit_depth, gamma=gamma, exposure=exposure)
+        out = np.full((9, 7), np.nan, np.float32)
+        got = radiance(v, d, bit_depth=bit_depth, gamma=gamma, exposure=exposure, out=out)
+        assert got is out
+        np.testing.assert_array_equal(out, want)
+    with pytest.raises(ValueError, match="out"):
+        linearize(v, bit_depth=bit_depth, gamma=gamma, out=np.empty((7, 9), np.float32))

@@ -122,6 +122,9 @@ def test_radiance_many_equals_radiance(written_bundle) -> None:
             np.testing.assert_array_equal(stack[i], bundle.radiance(frame))
         assert frames[0].kind == "dark"  # darks are object frames by default
         np.testing.assert_array_equal(bundle.radiance_many([3], max_workers=1)[0], stack[3])
+        out = np.empty((12, 16), np.float32)
+        assert bundle.radiance(frames[3], out=out) is out
+        np.testing.assert_array_equal(out, stack[3])
 
 
 def test_frame_argument_must_belong_to_the_bundle(written_bundle) -> None:

@@ -13,10 +13,13 @@ class _Bundle:
 
     manifest = SimpleNamespace(camera=SimpleNamespace(height=3, width=2))
 
-    def radiance(self, frame):
+    def radiance(self, frame, *, out=None):
         if frame == 13:
             raise ValueError("frame 13 is broken")
-        return np.full((3, 2), frame, np.float32)
+        if out is None:
+            return np.full((3, 2), frame, np.float32)
+        out[...] = frame
+        return out
 
 
 @pytest.mark.parametrize(("workers", "ahead"), [(1, 0), (2, 1), (3, 2), (2, 10)])
