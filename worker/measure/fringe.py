@@ -117,7 +117,7 @@ def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_
                 ambient.append(
                     np.where(
                         ref_phase.mean > 0, obj_phase.mean / ref_phase.mean * rho_ref, np.nan
-                    ).astype(np.float32)
+                    ).astype(np.float32, copy=False)
                 )
             periods = np.array([p for p, _, _ in levels])
             wrapped_az = wrapped.pop(key)
@@ -134,7 +134,7 @@ def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_
             # unwrapping's ambiguity test).
             ok = np.isfinite(h) & (un.conflicts <= 1) & (un.sigma_rad * _Z <= np.pi)
             summary[f"{key[0]:g}"] = _unwrap_summary(un, ok, periods)
-            heights.append(np.where(ok, h, np.nan).astype(np.float32))
+            heights.append(np.where(ok, h, np.nan).astype(np.float32, copy=False))
             b_obj, b_ref = zip(*amps.pop(key), strict=True)
             cliff_jobs.append(
                 side.submit(
@@ -148,9 +148,9 @@ def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_
                     pixel_size_um=meas.pixel_size_um,
                 )
             )
-            sigmas.append(np.where(ok, sigma_h, np.nan).astype(np.float32))
+            sigmas.append(np.where(ok, sigma_h, np.nan).astype(np.float32, copy=False))
             m = obj_phase.modulation
-            mods.append(np.where(np.isfinite(m), m, np.nan).astype(np.float32))
+            mods.append(np.where(np.isfinite(m), m, np.nan).astype(np.float32, copy=False))
         if key == blur_key:
             # The camera's blur is measured on these (`pipeline.camera_blur_px`).
             period = sets[key][level][0]
