@@ -92,7 +92,16 @@ def test_random_json_gives_only_problems(value) -> None:
 @given(data=st.binary(max_size=200) | st.text(max_size=100).map(str.encode))
 def test_random_bytes_parse_or_give_one_problem(data: bytes) -> None:
     value, problems = parse_manifest_json(data)
-    assert (value is None) == bool(problems)
+    if problems:
+        assert value is None and len(problems) == 1
+    else:
+        # Parsed: the JSON value itself, which may be null (check_manifest refuses it).
+        assert value == json.loads(data.decode("utf-8"))
+
+
+def test_json_null_parses_to_none_and_is_refused_by_the_field_checks() -> None:
+    assert parse_manifest_json(b"null") == (None, [])
+    assert "must hold a JSON object" in check_manifest(None)[0].message
 
 
 @pytest.fixture(scope="module")
