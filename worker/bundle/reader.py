@@ -153,7 +153,7 @@ class Bundle:
         out = np.empty((len(chosen), cam.height, cam.width), dtype=np.float32)
 
         def fill(i: int) -> None:
-            out[i] = self.radiance(chosen[i])
+            self.radiance(chosen[i], out=out[i])
 
         workers = max_workers or min(4, os.cpu_count() or 1)
         if workers <= 1 or len(chosen) <= 1:
