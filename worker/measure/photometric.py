@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import cv2
 import numpy as np
 
 from worker.measure.frames import angle_key
 from worker.recon.color import rgb_reflectance
+from worker.recon.parallel import run_blocks
 from worker.recon.photometric import light_directions, photometric_stereo
 from worker.recon.radiometry import flat_field
 
@@ -40,12 +39,7 @@ def _source_footprint(ref_stack, frames, height_um, pixel_size_um, workers=1):
             borderMode=cv2.BORDER_REPLICATE,
         )
 
-    if workers > 1:
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            list(pool.map(shift_frame, range(len(frames))))
-    else:
-        for k in range(len(frames)):
-            shift_frame(k)
+    run_blocks(shift_frame, range(len(frames)), workers=workers)
     return ref_stack
 
 

@@ -16,13 +16,14 @@ pixel seen from at least one azimuth with good modulation is then measured direc
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.ndimage as ndi
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+
+from worker.recon.parallel import run_blocks
 
 __all__ = [
     "CombinedHeight",
@@ -220,13 +221,7 @@ def consensus_azimuths(
         mean[sl], spread[sl], used[sl], sigma[sl] = out
 
     # Pixels are independent: blocks that fit the CPU cache, shared out between threads.
-    starts = range(0, n_pix, _CONSENSUS_BLOCK)
-    if workers > 1:
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            list(pool.map(combine, starts))
-    else:
-        for start in starts:
-            combine(start)
+    run_blocks(combine, range(0, n_pix, _CONSENSUS_BLOCK), workers=workers)
     return CombinedHeight(
         height_um=mean.reshape(rows, cols),
         spread_um=spread.reshape(rows, cols),

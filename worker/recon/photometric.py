@@ -16,11 +16,11 @@ normal equations in closed form.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
+from worker.recon.parallel import run_blocks
 from worker.recon.photometric_fit import (
     _DENSE_LIGHTS,
     Model,
@@ -236,13 +236,7 @@ def photometric_stereo(
         used[idx] = np.where(ok, m, 0)
 
     # Pixels are independent: chunks run in threads (numpy releases the GIL on the arrays).
-    starts = range(0, pix.size, chunk)
-    if workers > 1 and len(starts) > 1:
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            list(pool.map(solve, starts))
-    else:
-        for start in starts:
-            solve(start)
+    run_blocks(solve, range(0, pix.size, chunk), workers=workers)
 
     return PhotometricResult(
         normals=normals.reshape(h, w, 3),

@@ -17,9 +17,9 @@ power k and its non-uniform footprint E cancel pixel by pixel.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
+
+from worker.recon.parallel import run_blocks
 
 __all__ = ["flat_field"]
 
@@ -118,10 +118,5 @@ def flat_field(
             s = obj3[i] / r * scale
         out[i] = np.where(ok & np.isfinite(s), s, np.float32(np.nan))
 
-    if workers > 1 and k > 1:
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            list(pool.map(frame, range(k)))
-    else:
-        for i in range(k):
-            frame(i)
+    run_blocks(frame, range(k), workers=workers)
     return out.reshape(obj.shape)

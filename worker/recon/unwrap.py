@@ -13,10 +13,11 @@ paper's doubling periods) tolerates phase errors up to ±π/2 on the coarser lev
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
+
+from worker.recon.parallel import run_blocks
 
 __all__ = [
     "UnwrappedPhase",
@@ -238,12 +239,7 @@ def noise_aware_unwrap(
         out_level[sl], out_conf[sl] = level, conf
 
     # Pixels are independent: the blocks may run in threads.
-    if workers > 1:
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            list(pool.map(unwrap_rows, range(0, rows, step)))
-    else:
-        for r0 in range(0, rows, step):
-            unwrap_rows(r0)
+    run_blocks(unwrap_rows, range(0, rows, step), workers=workers)
     finite = np.isfinite(out_est) & (out_info > 0)
     with np.errstate(divide="ignore"):
         sigma = np.float32(1.0) / np.sqrt(out_info)
