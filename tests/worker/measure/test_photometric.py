@@ -5,6 +5,7 @@ glossy surfaces.  The bundle is a stub with the two methods the stage calls."""
 from dataclasses import dataclass
 
 import numpy as np
+from shading_cases import angle_deg, sphere_normals
 
 from worker.measure.photometric import measure_photometric
 from worker.measure.result import Measurements
@@ -31,16 +32,6 @@ class _Bundle:
         return None if self._refs is None else self._refs[self.frames.index(frame)]
 
 
-def _sphere(size=48):
-    yy, xx = np.mgrid[0:size, 0:size].astype(float)
-    c, r = (size - 1) / 2, 0.45 * size
-    dx, dy = (xx - c) / r, (yy - c) / r
-    inside = dx**2 + dy**2 < 0.8**2  # slopes up to 53°
-    n = np.stack([dx, dy, -np.sqrt(np.clip(1 - dx**2 - dy**2, 0, None))], -1)
-    n[~inside] = (0.0, 0.0, -1.0)
-    return n, inside
-
-
 def _diligent_like_lights():
     """96 directions on an 8 × 12 grid of the plane z = −1 (polar 4°–45°), as in DiLiGenT."""
     x, y = np.meshgrid(np.linspace(-0.8, 0.8, 12), np.linspace(-0.6, 0.6, 8))
@@ -49,10 +40,6 @@ def _diligent_like_lights():
     polar = np.degrees(np.arccos(-d[:, 2]))
     azimuth = np.degrees(np.arctan2(d[:, 0], d[:, 1]))
     return azimuth, polar
-
-
-def _angle_deg(a, b):
-    return np.degrees(np.arccos(np.clip(np.sum(a * b, -1), -1, 1)))
 
 
 def _render(n, lights, rho):
@@ -65,7 +52,7 @@ def test_no_reference_frames_with_mixed_polar_angles_and_unequal_sources():
     # frame's exposure; no reference target.  The radiance is rescaled by one unknown gain.
     azimuth, polar = _diligent_like_lights()
     lights = light_directions(azimuth, polar)
-    n, inside = _sphere()
+    n, inside = sphere_normals()
     rng = np.random.default_rng(3)
     power = rng.uniform(0.5, 1.5, len(azimuth))
     shading, cos = _render(n, lights, 0.6)
@@ -74,7 +61,7 @@ def test_no_reference_frames_with_mixed_polar_angles_and_unequal_sources():
     frames = [_Frame(a, p, e) for a, p, e in zip(azimuth, polar, power, strict=True)]
     meas = Measurements(pixel_size_um=20.0, shape=n.shape[:2])
     measure_photometric(_Bundle(frames, radiance.astype(np.float32)), frames, meas, 1.0)
-    err = _angle_deg(meas.normals, n)[inside]
+    err = angle_deg(meas.normals, n)[inside]
     # Noise-limited error: σ_θ ≈ σ_s / (ρ_eff·sqrt(Σ sin²)) with ρ_eff = 0.42 (0.7 × 0.6),
     # σ_s = 0.002 and ~90 lights spread over ±45° (Σ of the squared tangential components
     # ≈ 90 × 0.15): σ_θ ≈ 0.002 / (0.42 × 3.7) rad ≈ 0.07°.  A cos θ error (1 − cos 45° =

@@ -44,6 +44,19 @@ def _rms(a):
     return float(np.sqrt(np.mean(np.square(a))))
 
 
+def _fuse(normals, fringe_height_um, mask, **options):
+    """fuse_default with this module's pixel size and noise levels."""
+    return fuse_default(
+        normals,
+        fringe_height_um,
+        pixel_size_um=S_UM,
+        mask=mask,
+        normal_sigma_rad=SIGMA_N_RAD,
+        height_sigma_um=SIGMA_F_UM,
+        **options,
+    )
+
+
 def test_fused_heights_beat_both_inputs():
     # Expected fused error: the data term averages fringe noise over the footprint where the
     # slopes are trusted, radius L = σ_f/(s·σ_n) = 2/(20·0.005) = 20 px, i.e. ~πL² ≈ 1,200
@@ -53,29 +66,14 @@ def test_fused_heights_beat_both_inputs():
     h, gx, gy = _surface()
     n, f = _noisy(rng, h, gx, gy)
     mask = _mask(h.shape)
-    got = fuse_default(
-        n,
-        f,
-        pixel_size_um=S_UM,
-        mask=mask,
-        normal_sigma_rad=SIGMA_N_RAD,
-        height_sigma_um=SIGMA_F_UM,
-    )
+    got = _fuse(n, f, mask)
     assert np.all(np.isnan(got[~mask]))
     err = got[mask] - h[mask]
     assert abs(float(np.median(err))) < 0.2  # absolute heights come from the fringes
     assert _rms(err) < SIGMA_F_UM / 4
     assert _rms(err) < _rms(f[mask] - h[mask]) / 4
     # Threads (DCTs, the last solve's targets beside the first) change nothing.
-    threaded = fuse_default(
-        n,
-        f,
-        pixel_size_um=S_UM,
-        mask=mask,
-        normal_sigma_rad=SIGMA_N_RAD,
-        height_sigma_um=SIGMA_F_UM,
-        workers=2,
-    )
+    threaded = _fuse(n, f, mask, workers=2)
     np.testing.assert_array_equal(threaded, got)
 
 
@@ -88,14 +86,7 @@ def test_fringe_outliers_are_rejected():
     bad = rng.random(f.shape) < 0.01
     f = np.where(bad, f + 60, f).astype(np.float32)
     mask = _mask(h.shape)
-    got = fuse_default(
-        n,
-        f,
-        pixel_size_um=S_UM,
-        mask=mask,
-        normal_sigma_rad=SIGMA_N_RAD,
-        height_sigma_um=SIGMA_F_UM,
-    )
+    got = _fuse(n, f, mask)
     err = got[mask] - h[mask]
     assert _rms(err - np.median(err)) < SIGMA_F_UM / 4
     assert np.max(np.abs(err)) < 2.0
@@ -110,14 +101,7 @@ def test_region_without_fringes_is_reached_by_slopes():
     n, f = _noisy(rng, h, gx, gy)
     f[33:63, 49:79] = np.nan
     mask = _mask(h.shape)
-    got = fuse_default(
-        n,
-        f,
-        pixel_size_um=S_UM,
-        mask=mask,
-        normal_sigma_rad=SIGMA_N_RAD,
-        height_sigma_um=SIGMA_F_UM,
-    )
+    got = _fuse(n, f, mask)
     err = (got - h)[33:63, 49:79]
     assert np.all(np.isfinite(err))
     assert np.max(np.abs(err)) < 1.0
@@ -127,14 +111,7 @@ def test_no_fringes_at_all_gives_the_integrated_normals_with_zero_mean():
     h, gx, gy = _surface()
     mask = _mask(h.shape)
     f = np.full(h.shape, np.nan, np.float32)
-    got = fuse_default(
-        _normals(gx, gy),
-        f,
-        pixel_size_um=S_UM,
-        mask=mask,
-        normal_sigma_rad=SIGMA_N_RAD,
-        height_sigma_um=SIGMA_F_UM,
-    )
+    got = _fuse(_normals(gx, gy), f, mask)
     assert abs(float(np.mean(got[mask]))) < 0.05
     err = got[mask] - h[mask]
     assert np.ptp(err) < 0.2  # shape exact up to the solver's tolerance (1e-3 of ~100 µm)
@@ -318,14 +295,7 @@ def test_a_cliff_that_the_normals_cannot_express_is_kept_from_the_fringes():
     gx[:, wall - 1 : wall + 1] += 20.0 / S_UM / 2  # mixed pixels: a mild slope
     n, f = _noisy(rng, h, gx, gy)
     mask = _mask(h.shape)
-    got = fuse_default(
-        n,
-        f,
-        pixel_size_um=S_UM,
-        mask=mask,
-        normal_sigma_rad=SIGMA_N_RAD,
-        height_sigma_um=SIGMA_F_UM,
-    )
+    got = _fuse(n, f, mask)
     away = mask & (np.abs(np.arange(h.shape[1]) - wall + 0.5) > 3)[None, :]
     err = (got - h)[away]
     assert np.max(np.abs(err - np.median(err))) < 1.0
@@ -417,15 +387,7 @@ def test_variance_components_help_when_the_normals_are_worse_than_claimed():
     for normals, must_gain in ((n_bad, True), (n_ok, False)):
         errs = []
         for vce in (False, True):
-            got = fuse_default(
-                normals,
-                f,
-                pixel_size_um=S_UM,
-                mask=mask,
-                normal_sigma_rad=SIGMA_N_RAD,
-                height_sigma_um=SIGMA_F_UM,
-                variance_components=vce,
-            )
+            got = _fuse(normals, f, mask, variance_components=vce)
             e = (got - h)[mask]
             errs.append(_rms(e - e.mean()))
         if must_gain:
@@ -451,14 +413,7 @@ def test_pixels_straddling_a_cliff_do_not_carry_its_pull():
     n, f = _noisy(rng, h, gx, gy)
     f[:, wall] += rng.normal(0, 60.0, h.shape[0]).astype(np.float32)
     mask = _mask(h.shape)
-    got = fuse_default(
-        n,
-        f,
-        pixel_size_um=S_UM,
-        mask=mask,
-        normal_sigma_rad=SIGMA_N_RAD,
-        height_sigma_um=SIGMA_F_UM,
-    )
+    got = _fuse(n, f, mask)
     away = mask & (np.abs(cols - wall) >= 2)[None, :]
     err = (got - h)[away]
     assert np.max(np.abs(err - np.median(err))) < 1.0

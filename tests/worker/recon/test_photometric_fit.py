@@ -6,22 +6,9 @@ an oracle on the same noisy data (least squares over the truly clean samples).""
 
 import numpy as np
 import pytest
+from shading_cases import angle_deg, sphere_normals
 
 from worker.recon.photometric import light_directions, photometric_stereo
-
-
-def _sphere(size=48):
-    yy, xx = np.mgrid[0:size, 0:size].astype(float)
-    c, r = (size - 1) / 2, 0.45 * size
-    dx, dy = (xx - c) / r, (yy - c) / r
-    inside = dx**2 + dy**2 < 0.8**2  # slopes up to 53°
-    n = np.stack([dx, dy, -np.sqrt(np.clip(1 - dx**2 - dy**2, 0, None))], -1)
-    n[~inside] = (0.0, 0.0, -1.0)
-    return n, inside
-
-
-def _angle_deg(a, b):
-    return np.degrees(np.arccos(np.clip(np.sum(a * b, -1), -1, 1)))
 
 
 def _render(n, lights, rho, *, ks=0.0, alpha=1.0):
@@ -41,14 +28,14 @@ def test_highlights_under_many_lights_at_mixed_polar_angles(ks, alpha):
     polar = np.repeat([15.0, 35.0, 55.0, 70.0], 8)
     azimuth = (np.arange(32) % 8) * 45.0 + (np.arange(32) // 8) * 11.25
     lights = light_directions(azimuth, polar)
-    n, inside = _sphere()
+    n, inside = sphere_normals()
     rng = np.random.default_rng(4)
     rho = rng.uniform(0.3, 0.8, n.shape[:2])
     shading, cos = _render(n, lights, rho, ks=ks, alpha=alpha)
     sigma = 0.003
     s = (shading + rng.normal(0, sigma, shading.shape)).astype(np.float32)
     res = photometric_stereo(s, lights)
-    err = _angle_deg(res.normals, n)[inside]
+    err = angle_deg(res.normals, n)[inside]
     # The noise floor on the same data: least squares over the truly clean samples (lit,
     # n·l > 0.1, lobe below σ/2).  The robust fit may leave out up to about half of them
     # near a highlight (σ × √2) and never does better than this oracle on average: its
@@ -56,7 +43,7 @@ def test_highlights_under_many_lights_at_mixed_polar_angles(ks, alpha):
     # fit costs degrees (plain least squares: median 1.7°, p90 4° for ks = 0.3, α = 50).
     lobe = shading - rho * np.clip(cos, 0, None)
     oracle = _ls_normals(s, lights, (cos > 0.1) & (lobe < sigma / 2))
-    ref = _angle_deg(oracle, n)[inside]
+    ref = angle_deg(oracle, n)[inside]
     assert np.median(err) < 1.5 * np.median(ref)
     assert np.percentile(err, 90) < 2.0 * np.percentile(ref, 90)
 
@@ -75,13 +62,13 @@ def test_four_lights_with_one_highlight():
     # physics (a lit sample cannot lie behind the terminator of the fit; a highlight only
     # adds light), not by the residuals.
     lights = light_directions([0.0, 90.0, 180.0, 270.0], 40.0)
-    n, inside = _sphere()
+    n, inside = sphere_normals()
     shading, cos = _render(n, lights, 0.5, ks=0.5, alpha=50.0)
     rng = np.random.default_rng(5)
     sigma = 0.002
     s = (shading + rng.normal(0, sigma, shading.shape)).astype(np.float32)
     res = photometric_stereo(s, lights)
-    err = _angle_deg(res.normals, n)
+    err = angle_deg(res.normals, n)
     # Pixels seen by all four lights (n·l > 0.1), the lobe above noise on one light at most
     # (with two, three lights are not enough).
     lobe = shading - 0.5 * np.clip(cos, 0, None)
@@ -90,7 +77,7 @@ def test_four_lights_with_one_highlight():
     # The noise floor: least squares over the lights without the lobe on the same data.  A
     # wrong choice of outlier costs tens of degrees (the lobe reaches +100 %); the median
     # and 95th percentile must be within 1.5× and 2× the oracle's.
-    ref = _angle_deg(_ls_normals(s, lights, use), n)[lit4]
+    ref = angle_deg(_ls_normals(s, lights, use), n)[lit4]
     assert np.median(err[lit4]) < 1.5 * np.median(ref)
     assert np.percentile(err[lit4], 95) < 2.0 * np.percentile(ref, 95)
 
@@ -108,7 +95,7 @@ def test_fewer_than_three_lit_lights_give_nan():
     res = photometric_stereo(s, lights)
     assert np.all(np.isnan(res.normals[:, 4:])) and np.all(res.lights_used[:, 4:] == 0)
     # 16 lights at 45°, σ = 0.002 on ρ = 0.6: σ_θ ≈ 0.002/(0.6·sin 45°·sqrt(8)) ≈ 0.1°.
-    assert np.all(_angle_deg(res.normals[:, :4], n) < 1.0)
+    assert np.all(angle_deg(res.normals[:, :4], n) < 1.0)
 
 
 @pytest.mark.parametrize("k", [4, 16, 255, 300])
