@@ -101,6 +101,9 @@ def main(argv=None) -> int:
     p.add_argument("--point-truth", action="store_true")
     args = p.parse_args(argv)
     scan = Path(args.scan)
+    missing = [str(scan / n) for n in ("bundle", "gt/height.npy") if not (scan / n).exists()]
+    if missing:
+        p.error(f"--scan {scan}: not a simulated scan folder (missing {', '.join(missing)})")
     gt = {k: np.load(scan / "gt" / f"{k}.npy") for k in ("height", "normals", "mask")}
     with open_bundle(scan / "bundle") as b:
         meas = measure_bundle(b, progress=lambda s, f: None)
