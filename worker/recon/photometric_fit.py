@@ -37,6 +37,33 @@ def _count(mask: np.ndarray) -> np.ndarray:
     return mask.view(np.uint8).sum(axis=0, dtype=np.uint8).astype(np.int64)
 
 
+def _cols(x: np.ndarray, sel: np.ndarray) -> np.ndarray:
+    """Columns ``sel`` (int indices or a bool mask) of a (K, n) array, as a C-ordered copy.
+
+    np.take / np.compress gather 2–3× faster than ``x[:, sel]``, whose copy also comes out
+    F-ordered, so that every later (K, n) pass over it walks across the rows.
+    """
+    if sel.dtype == bool:
+        return np.compress(sel, x, axis=1)
+    return np.take(x, sel, axis=1)
+
+
+def _rows(x: np.ndarray, sel: np.ndarray) -> np.ndarray:
+    """Rows ``sel`` (int indices or a bool mask) of a per-pixel (n,) or (n, 3) array: as
+    :func:`_cols`, np.take / np.compress gather several times faster than ``x[sel]``."""
+    if sel.dtype == bool:
+        return np.compress(sel, x, axis=0)
+    return np.take(x, sel, axis=0)
+
+
+def _set_cols(x: np.ndarray, cols: np.ndarray, values: np.ndarray) -> None:
+    """``x[:, cols] = values`` for a C-ordered (K, n) x, by flat indices (twice as fast)."""
+    if not x.flags.c_contiguous:
+        raise ValueError("_set_cols needs a C-ordered array")
+    flat = (np.arange(x.shape[0])[:, None] * x.shape[1] + cols).ravel()
+    x.reshape(-1)[flat] = values.reshape(-1)
+
+
 def _solve_sym3(m6: np.ndarray, rhs: np.ndarray, min_condition: float):
     """Solve M x = rhs for batched symmetric 3×3 M given as (N, 6) = (a, b, c, d, e, f).
 
@@ -175,8 +202,8 @@ class Model:
     def sub(self, cols):
         """The same model restricted to the pixels ``cols``."""
         return Model(
-            self.s[:, cols],
-            self.valid[:, cols],
+            _cols(self.s, cols),
+            _cols(self.valid, cols),
             self.lights32,
             self.ll6,
             self.shadow,
@@ -192,7 +219,7 @@ class Model:
         rho = np.sqrt(np.einsum("ni,ni->n", b32, b32))
         front = pred > self.shadow * rho
         # In place: these (K, n) passes dominate the cost of the whole fit.
-        r = np.subtract(self.s[:, cols], pred)
+        r = np.subtract(self.s if isinstance(cols, slice) else _cols(self.s, cols), pred)
         tol = np.maximum(pred, np.float32(0.0), out=pred)
         tol *= self.tolerance
         tol += max(self.abs_tol, np.float32(1e-12))
@@ -245,15 +272,15 @@ class Model:
             else:
                 if cols.size == 0:
                     break
-                sub = inl[:, cols]
-                r, tol, _ = self.residual(b[cols], cols)
+                sub = _cols(inl, cols)
+                r, tol, _ = self.residual(_rows(b, cols), cols)
                 raw = np.where(sub, np.abs(r) / tol, 0.0)
                 many = True
             # Leverage rarely exceeds 0.9 with four or more lights, so a sample whose raw
             # ratio is below 0.3 cannot be the worst misfit: skip those pixels cheaply.
             near = np.flatnonzero((raw.max(axis=0) > 0.3) & many)
             cols = near if cols is None else cols[near]
-            sub, raw = inl[:, cols], raw[:, near]
+            sub, raw = _cols(inl, cols), _cols(raw, near)
             if cols.size == 0:
                 break
             lev = _leverage(sub, self.ll6)
@@ -262,11 +289,11 @@ class Model:
             ratio = raw / np.sqrt(np.maximum(1.0 - lev, np.float32(1e-3)))
             n_in = _count(sub)
             worst = ratio.max(axis=0)
-            bad = (worst > 1.0) & (n_in > 3)
+            bad = np.flatnonzero((worst > 1.0) & (n_in > 3))
             cols, sub, ratio, n_in, worst = (
                 cols[bad],
-                sub[:, bad],
-                ratio[:, bad],
+                _cols(sub, bad),
+                _cols(ratio, bad),
                 n_in[bad],
                 worst[bad],
             )
@@ -280,13 +307,13 @@ class Model:
             cap_thr = np.take_along_axis(ranked, (cap - 1)[None, :], axis=0)[0]
             thr = np.maximum(np.maximum(np.float32(1.0), 0.5 * worst), cap_thr)
             drop = sub & (ratio >= thr[None, :])
-            inl[:, cols] &= ~drop
-            b_new, ok_new = _fit(self.s[:, cols], inl[:, cols], self.lights32, self.ll6)
+            sub &= ~drop
+            b_new, ok_new = _fit(_cols(self.s, cols), sub, self.lights32, self.ll6)
             # A removal that leaves lights not spanning 3-D is undone and ends that pixel.
-            undo = ~ok_new
-            inl[:, cols[undo]] |= drop[:, undo]
-            cols = cols[ok_new]
-            b[cols], ok[cols] = b_new[ok_new], True
+            kept = np.flatnonzero(ok_new)
+            cols = cols[kept]
+            _set_cols(inl, cols, _cols(sub, kept))
+            b[cols], ok[cols] = _rows(b_new, kept), True
         return inl, b, ok
 
 
@@ -342,9 +369,11 @@ def _settle(model, cand, b0, ok0):
     b, ok = b0.copy(), ok0.copy()
     moved = np.flatnonzero(np.any(inl != cand, axis=0) | ~ok)
     if moved.size:
-        b[moved], ok[moved] = _fit(model.s[:, moved], inl[:, moved], model.lights32, model.ll6)
-        r, tol, _ = model.residual(b[moved], moved)
-        ratio[:, moved] = np.abs(r) / tol
+        b[moved], ok[moved] = _fit(
+            _cols(model.s, moved), _cols(inl, moved), model.lights32, model.ll6
+        )
+        r, tol, _ = model.residual(_rows(b, moved), moved)
+        _set_cols(ratio, moved, np.abs(r) / tol)
     return model.trim(inl, b, ok, ratio)
 
 
@@ -365,8 +394,8 @@ def robust_fit(model, cand, iterations):
     cols = np.flatnonzero(~ok | np.any(misfit, axis=0))
     if cols.size:
         sub = model.sub(cols)
-        sub_cand = cand[:, cols]
-        best_inl, best_b, best_ok = inl[:, cols], b[cols], ok[cols]
+        sub_cand = _cols(cand, cols)
+        best_inl, best_b, best_ok = _cols(inl, cols), _rows(b, cols), ok[cols]
         best_sc = sub.score(best_b, best_ok, sub_cand)
         for h_b, h_ok in _hypotheses(sub, sub_cand, max(float(model.abs_tol), 1e-4)):
             h_inl, h_b, h_ok = _settle(sub, sub_cand, h_b, h_ok)
@@ -376,27 +405,30 @@ def robust_fit(model, cand, iterations):
             best_ok = np.where(better, h_ok, best_ok)
             best_inl = np.where(better[None, :], h_inl, best_inl)
             best_sc = np.where(better, sc, best_sc)
-        inl[:, cols], b[cols], ok[cols] = best_inl, best_b, best_ok
+        _set_cols(inl, cols, best_inl)
+        b[cols], ok[cols] = best_b, best_ok
 
     # Only pixels whose fit changed after their last selection can re-admit samples.
     for _ in range(iterations):
         if cols.size == 0:
             break
         sub = model.sub(cols)
-        new = sub.select(b[cols])
+        new = sub.select(_rows(b, cols))
+        old = _cols(inl, cols)
         # Re-admission never drops a pixel below three lights.
-        new = np.where((_count(new) >= 3)[None, :], new, inl[:, cols])
-        moved = np.any(new != inl[:, cols], axis=0)
-        cols, new = cols[moved], new[:, moved]
+        new = np.where((_count(new) >= 3)[None, :], new, old)
+        moved = np.flatnonzero(np.any(new != old, axis=0))
+        cols, new = cols[moved], _cols(new, moved)
         if cols.size == 0:
             break
         sub = model.sub(cols)
         b_new, ok_new = _fit(sub.s, new, sub.lights32, sub.ll6)
         new, b_new, ok_new = sub.trim(new, b_new, ok_new)
         # Keep the previous solution where the new set does not span 3-D.
-        take = ok_new | ~ok[cols]
-        cols, new, b_new, ok_new = cols[take], new[:, take], b_new[take], ok_new[take]
-        inl[:, cols], b[cols], ok[cols] = new, b_new, ok_new
+        take = np.flatnonzero(ok_new | ~ok[cols])
+        cols, new, b_new, ok_new = cols[take], _cols(new, take), _rows(b_new, take), ok_new[take]
+        _set_cols(inl, cols, new)
+        b[cols], ok[cols] = b_new, ok_new
     return b, ok, inl
 
 
@@ -436,15 +468,15 @@ def asymmetric_refine(model, inl, b, ok, sigma, iterations=1):
         sub = model if every else model.sub(cols)
         # The signed residual alone (Model.residual's tolerance and terminator passes are
         # not needed here).
-        r = np.subtract(sub.s, sub.lights32 @ (b if every else b[cols]).astype(np.float32).T)
-        high = (inl if every else inl[:, cols]) & (r > two_sigma)
-        keep = np.any(high, axis=0) & ok[cols]
-        cols, r, high = cols[keep], r[:, keep], high[:, keep]
+        r = np.subtract(sub.s, sub.lights32 @ (b if every else _rows(b, cols)).astype(np.float32).T)
+        high = (inl if every else _cols(inl, cols)) & (r > two_sigma)
+        keep = np.flatnonzero(np.any(high, axis=0) & ok[cols])
+        cols, r, high = cols[keep], _cols(r, keep), _cols(high, keep)
         if cols.size == 0:
             break
         w = np.where(high, (two_sigma / np.maximum(r, two_sigma)) ** 2, 1.0)
-        w = np.where(inl[:, cols], w, 0.0).astype(np.float32)
-        b_new, ok_new = _fit(model.s[:, cols], w, model.lights32, model.ll6)
+        w = np.where(_cols(inl, cols), w, 0.0).astype(np.float32)
+        b_new, ok_new = _fit(_cols(model.s, cols), w, model.lights32, model.ll6)
         b[cols[ok_new]] = b_new[ok_new]
     return b
 
@@ -553,12 +585,13 @@ def cone_resolve(model, cand, inl, b, ok, sigma, *, cone_deg=20.0, k_sigma=1.5, 
     if cols.size == 0:
         return inl, b
     sub = model.sub(cols)
-    near = near[:, cols]
-    dropped = near & inl[:, cols]
+    near = _cols(near, cols)
+    sub_inl = _cols(inl, cols)
+    dropped = near & sub_inl
     # The cone's samples are no longer valid: no selection may re-admit them.
     sub.valid = sub.valid & ~near
-    sub_cand = cand[:, cols] & ~near
-    b0, ok0 = _fit(sub.s, inl[:, cols] & ~near, sub.lights32, sub.ll6)
+    sub_cand = _cols(cand, cols) & ~near
+    b0, ok0 = _fit(sub.s, sub_inl & ~near, sub.lights32, sub.ll6)
     inl2, b2, ok2 = _settle(sub, sub_cand, b0, ok0)
     # The evidence: the inliers the cone takes away must sit above the new fit.
     m = _count(dropped)
@@ -573,7 +606,8 @@ def cone_resolve(model, cand, inl, b, ok, sigma, *, cone_deg=20.0, k_sigma=1.5, 
     # loss costs little.  Judging them too (16 lights, simulated hard scan) left weak lobes
     # in: fused wedge depth error 3.6 µm (free = 4), 4.3 µm (free = 0).
     take = ok2 & ok_m & ((z > k_sigma) | (m <= free))
+    take = np.flatnonzero(take)
     inl, b = inl.copy(), b.copy()
-    inl[:, cols[take]] = inl2[:, take]
-    b[cols[take]] = b2[take]
+    _set_cols(inl, cols[take], _cols(inl2, take))
+    b[cols[take]] = _rows(b2, take)
     return inl, b
