@@ -45,16 +45,13 @@ class ModelArrays:
         self.quality = dict(quality)
 
 
-def _npy(path: Path, array: np.ndarray) -> None:
-    write_new_file(path, npy_bytes(array))
-
-
-def _png(path: Path, image: np.ndarray) -> None:
+def _png_bytes(name: str, image: np.ndarray) -> bytes:
+    """PNG encoding of the grey (H, W) or RGB (H, W, 3) uint8 image of file `name`."""
     img = image[..., ::-1] if image.ndim == 3 else image
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
     if not ok:
-        raise OSError(f"{path.name}: PNG encoding failed")
-    write_new_file(path, buf.tobytes())
+        raise OSError(f"{name}: PNG encoding failed")
+    return buf.tobytes()
 
 
 def write_model_dir(
@@ -87,7 +84,17 @@ def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int, f
     n = np.where(m[..., None], model.normals, np.nan).astype(np.float32)
     ok = m & np.isfinite(h)
     albedo = np.asarray(model.albedo_srgb8, np.uint8)
-    with ThreadPoolExecutor(max_workers=1) as pool:
+    (tmp / "quality").mkdir()
+    with ThreadPoolExecutor(max_workers=1) as pool, ThreadPoolExecutor(max_workers=1) as disk:
+        # Each file goes to disk (write, fsync) in its own thread while the next is encoded:
+        # the fsyncs wait on the device, not on a core.
+        saved = []
+
+        def save(name: str, data: bytes) -> None:
+            saved.append(disk.submit(write_new_file, tmp / name, data))
+
+        # albedo.png and the GLB's base colour texture are the same PNG: encoded once.
+        albedo_png = _png_bytes("albedo.png", albedo)
         # model.glb (full-resolution textures) is the largest part: it is built beside the rest.
         glb_job = pool.submit(
             glb_bytes,
@@ -97,13 +104,16 @@ def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int, f
             albedo,
             pixel_size_um=model.pixel_size_um,
             max_triangles=max_glb_triangles,
+            albedo_png=albedo_png,
         )
-        mesh = _write_grids(tmp, model, h, n, ok, albedo)
+        save("albedo.png", albedo_png)
+        mesh = _write_grids(save, model, h, n, ok, albedo)
+        for name, arr in model.quality.items():
+            save(f"quality/{name}.npy", npy_bytes(np.asarray(arr)))
         glb, info = glb_job.result()
-    write_new_file(tmp / "model.glb", glb)
-    (tmp / "quality").mkdir()
-    for name, arr in model.quality.items():
-        _npy(tmp / "quality" / f"{name}.npy", np.asarray(arr))
+        save("model.glb", glb)
+        for job in saved:
+            job.result()
     report = dict(report)
     report["mesh"] = {
         "ply_vertices": len(mesh.vertices_mm),
@@ -114,25 +124,26 @@ def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int, f
     }
     if finish is not None:
         report = finish(report)
+    # Last, once every other file is on disk.
     write_new_file(tmp / "report.json", json.dumps(report, indent=1, allow_nan=False).encode())
     return report
 
 
-def _write_grids(tmp: Path, model: ModelArrays, h, n, ok, albedo):
-    """height.npy, normals.npy, the PNGs and mesh.ply; returns the full-resolution mesh."""
+def _write_grids(save: Callable[[str, bytes], None], model: ModelArrays, h, n, ok, albedo):
+    """height.npy, normals.npy, mask.png, normals.png and mesh.ply, each handed to
+    `save(name, bytes)`; returns the full-resolution mesh."""
     m = np.asarray(model.mask, bool)
-    _npy(tmp / "height.npy", h)
-    _npy(tmp / "normals.npy", n)
-    _png(tmp / "albedo.png", albedo)
-    _png(tmp / "mask.png", np.where(m, 255, 0).astype(np.uint8))
+    save("height.npy", npy_bytes(h))
+    save("normals.npy", npy_bytes(n))
+    save("mask.png", _png_bytes("mask.png", np.where(m, 255, 0).astype(np.uint8)))
     rgb = np.where(np.isfinite(n), np.clip(np.rint((n + 1.0) * 127.5), 0, 255), 0).astype(np.uint8)
-    _png(tmp / "normals.png", rgb)
+    save("normals.png", _png_bytes("normals.png", rgb))
 
     mesh = grid_mesh(h, ok, pixel_size_um=model.pixel_size_um)
     vn = n[mesh.rows, mesh.cols]
     vn = np.where(np.isfinite(vn), vn, np.array([0, 0, -1], np.float32))
-    write_new_file(
-        tmp / "mesh.ply",
+    save(
+        "mesh.ply",
         ply_bytes(
             mesh.vertices_mm, mesh.faces, normals=vn, colors_rgb8=albedo[mesh.rows, mesh.cols]
         ),

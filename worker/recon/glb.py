@@ -106,10 +106,13 @@ def glb_bytes(
     *,
     pixel_size_um: float,
     max_triangles: int = 200_000,
+    albedo_png: bytes | None = None,
 ) -> tuple[bytes, dict]:
     """Encode model.glb; returns (bytes, info) with info = {step, vertices, triangles}.
 
     height_um (H, W) µm, mask (H, W) bool, normals (H, W, 3), albedo_srgb8 (H, W, 3) uint8.
+    albedo_png: albedo_srgb8's PNG encoding (as `cv2.imencode` gives it) when the caller
+    has it already (the model directory's albedo.png); encoded here otherwise.
     """
     h, w = np.shape(height_um)
     step = decimation_step((h, w), max_triangles)
@@ -134,13 +137,17 @@ def glb_bytes(
         tangents.tobytes(),
         uv.tobytes(),
         mesh.faces.astype(np.uint32).tobytes(),
-        _png(np.asarray(albedo_srgb8, np.uint8)),
+        _png(np.asarray(albedo_srgb8, np.uint8)) if albedo_png is None else albedo_png,
         _png(normal_tex),
     ]
-    offsets, data = [], b""
+    # One join of 4-byte-aligned pieces (concatenating in turn copied the growing buffer).
+    offsets, pieces, size = [], [], 0
     for blob in blobs:
-        offsets.append(len(data))
-        data += blob + b"\0" * (-len(blob) % 4)
+        pad = -len(blob) % 4
+        offsets.append(size)
+        pieces += [blob, b"\0" * pad]
+        size += len(blob) + pad
+    data = b"".join(pieces)
     views = [
         pygltflib.BufferView(
             buffer=0,

@@ -120,3 +120,20 @@ def test_glb_cross_product_is_numpys():
         a[0, 0, 1] = np.nan
         np.testing.assert_array_equal(_cross(a, b), np.cross(a, b))
         assert _cross(a, b).dtype == dtype
+
+
+def test_glb_takes_the_albedo_png_the_caller_encoded():
+    # model_dir hands over albedo.png's bytes: the same GLB as encoding the albedo here.
+    import cv2
+
+    rng = np.random.default_rng(1)
+    rows, cols = 30, 40
+    h = rng.normal(0, 5, (rows, cols)).astype(np.float32)
+    mask = np.ones((rows, cols), bool)
+    n = np.zeros((rows, cols, 3), np.float32)
+    n[..., 2] = -1
+    albedo = rng.integers(0, 256, (rows, cols, 3), dtype=np.uint8)
+    png = cv2.imencode(".png", np.ascontiguousarray(albedo[..., ::-1]))[1].tobytes()
+    plain = glb_bytes(h, mask, n, albedo, pixel_size_um=S_UM, max_triangles=800)
+    given = glb_bytes(h, mask, n, albedo, pixel_size_um=S_UM, max_triangles=800, albedo_png=png)
+    assert given == plain
