@@ -5,6 +5,7 @@ from __future__ import annotations
 import warnings
 from collections import defaultdict
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -86,25 +87,32 @@ def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_
     # Nothing below keeps a view of a stack past its iteration: buffers are reused.
     ahead = 6
     stacks = prefetch(bundle, groups, workers=workers + 1, ahead=ahead, reuse=True)
+    # The arrays of a group's results are written over by the next group's (fresh arrays
+    # cost their page faults, as much as the arithmetic): all but the amplitudes, which
+    # cliff_samples takes at the end of the azimuth, and the σ stack once unwrapped.
+    obj_phase = ref_phase = None
+    sig = sig_ref = noise_buffer = None
     for i, stack in enumerate(stacks):
         if on_queued is not None and i == max(0, total - 1 - ahead):
             on_queued()  # the prefetch has queued the frames of every group
         key, level = index[i]
         # Modulation is kept for the finest object set and the camera blur's reference sets.
         last = level == len(sets[key]) - 1
-        obj_phase = four_step_phase(stack[:4], modulation=last)
-        ref_phase = four_step_phase(stack[4:], modulation=key == blur_key)
+        obj_phase = four_step_phase(stack[:4], modulation=last, out=_reusable(obj_phase))
+        ref_phase = four_step_phase(stack[4:], modulation=key == blur_key, out=_reusable(ref_phase))
         amps[key].append((obj_phase.amplitude, ref_phase.amplitude))
         if level == 0:
             shape = (len(sets[key]), *obj_phase.phase_rad.shape)
             wrapped[key] = np.empty(shape, np.float32)
-            noise[key] = np.empty(shape, np.float32)
+            if noise_buffer is None or noise_buffer.shape != shape:
+                noise_buffer = np.empty(shape, np.float32)
+            noise[key] = noise_buffer
         # Object − reference, left in (−2π, 2π): noise_aware_unwrap wraps where it matters.
         np.subtract(obj_phase.phase_rad, ref_phase.phase_rad, out=wrapped[key][level])
         obj_noise, ref_noise = _noise(obj_phase), _noise(ref_phase)
         harmonic_sets += obj_noise.harmonic != (0.0, 0.0) or ref_noise.harmonic != (0.0, 0.0)
-        sig = phase_sigma_rad(obj_phase, obj_noise)
-        sig_ref = phase_sigma_rad(ref_phase, ref_noise)
+        sig = phase_sigma_rad(obj_phase, obj_noise, out=sig)
+        sig_ref = phase_sigma_rad(ref_phase, ref_noise, out=sig_ref)
         # Object and reference noise are independent: variances add in the difference.
         sig *= sig
         sig_ref *= sig_ref
@@ -203,6 +211,12 @@ def _central_median(a) -> float:
     m = a[rows // 4 : rows - rows // 4, cols // 4 : cols - cols // 4]
     m = m[np.isfinite(m)]
     return float(np.median(m)) if m.size else float("nan")
+
+
+def _reusable(phase):
+    """The arrays of a previous set's result that the next one may write over: not its
+    amplitude, kept for cliff_samples."""
+    return None if phase is None else replace(phase, amplitude=None)
 
 
 def _noise(phase):

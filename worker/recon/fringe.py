@@ -106,7 +106,9 @@ def _frames(name: str, frames: np.ndarray) -> np.ndarray:
     return arr.astype(np.float32, copy=False)
 
 
-def four_step_phase(frames: np.ndarray, *, modulation: bool = True) -> FringePhase:
+def four_step_phase(
+    frames: np.ndarray, *, modulation: bool = True, out: FringePhase | None = None
+) -> FringePhase:
     """Standard 4-step phase shifting (δ = 0, 90, 180, 270°).
 
     With I_δ = A + B cos(ψ + δ): I_0 − I_180 = 2B cos ψ and I_270 − I_90 = 2B sin ψ, so
@@ -116,11 +118,25 @@ def four_step_phase(frames: np.ndarray, *, modulation: bool = True) -> FringePha
     frames : (4, H, W) array in the order δ = 0, 90, 180, 270°, linear radiance (not
     flat-fielded: the phase does not depend on the scale).  modulation: False leaves B/A
     out (None), for callers that use it for some sets only.
+    out : arrays to write the result into, typically those of a previous set's result that
+    is no longer needed (each (H, W) float32); its None fields are allocated.  A fresh
+    1.3 Mpx array costs its page faults, about as much time as all the arithmetic here.
     """
     f = _frames("frames", frames)
     rows, cols = f.shape[1:]
-    phase, amp, mean, residual = (np.empty((rows, cols), np.float32) for _ in range(4))
-    mod = np.empty((rows, cols), np.float32) if modulation else None
+
+    def buffer(field: str) -> np.ndarray:
+        given = None if out is None else getattr(out, field)
+        if given is None:
+            return np.empty((rows, cols), np.float32)
+        if given.shape != (rows, cols) or given.dtype != np.float32:
+            raise ValueError(
+                f"out.{field} must be ({rows}, {cols}) float32, got {given.shape} {given.dtype}"
+            )
+        return given
+
+    phase, amp, mean, residual = (buffer(k) for k in ("phase_rad", "amplitude", "mean", "residual"))
+    mod = buffer("modulation") if modulation else None
     # Blocks of rows that stay in the CPU cache: the dozen passes below over whole 1.3 Mpx
     # frames were bound by memory bandwidth, which the frame decoding shares (80 sets of a
     # paper scan: 0.28 → 0.22 CPU s cold, more under the decoding); same values.
@@ -231,7 +247,13 @@ def _bin_medians(a_sorted, b, n_bins):
     return xa, yv
 
 
-def phase_sigma_rad(phase: FringePhase, noise: IntensityNoise, *, local_px: int = 5) -> np.ndarray:
+def phase_sigma_rad(
+    phase: FringePhase,
+    noise: IntensityNoise,
+    *,
+    local_px: int = 5,
+    out: np.ndarray | None = None,
+) -> np.ndarray:
     """Standard deviation of the 4-step phase, σ_ψ = σ_I/(√2·B), float32 (H, W).
 
     From ψ = atan2(I_270 − I_90, I_0 − I_180) with independent frame noise σ_I
@@ -242,31 +264,48 @@ def phase_sigma_rad(phase: FringePhase, noise: IntensityNoise, *, local_px: int 
     pixels below the fit's range, interreflections), so it only ever makes a phase less
     trusted.  inf where B = 0, NaN where the frames are.  A shadowed pixel has
     B ≈ σ_I (noise only), hence σ_ψ ≈ 0.7 rad or more: such phases never fix an order.
+    out : (H, W) float32 array to write σ_ψ into (no fresh array then: see
+    :func:`four_step_phase`), else one is allocated.
     """
     if phase.mean is None or phase.residual is None:
         raise ValueError("phase has no mean level or residual: use four_step_phase")
-    var = np.maximum(np.asarray(phase.mean, dtype=np.float32), np.float32(0))
-    var *= np.float32(noise.gain)
-    var += np.float32(noise.read_var)
+    mean = np.asarray(phase.mean, dtype=np.float32)
+    rows, cols = mean.shape
+    if out is None:
+        out = np.empty((rows, cols), np.float32)
+    elif out.shape != (rows, cols) or out.dtype != np.float32:
+        raise ValueError(f"out must be ({rows}, {cols}) float32, got {out.shape} {out.dtype}")
+    # Row blocks that stay in the CPU cache, as in four_step_phase; the local mean of r² is
+    # formed in `out` itself, the one full-frame pass (the box filter needs the neighbours).
+    step = max(1, _BLOCK_PIXELS // max(cols, 1))
+    blocks = [slice(r0, r0 + step) for r0 in range(0, rows, step)]
     if local_px > 1:
-        if noise.harmonic != (0.0, 0.0):
-            # The pattern's second harmonic is no noise (the 4-step phase ignores it).
-            c2, s2 = noise.harmonic
-            two_psi = 2.0 * phase.phase_rad
-            fit = np.cos(two_psi) * np.float32(c2)
-            fit += np.sin(two_psi) * np.float32(s2)
-            fit *= phase.mean
-            r2 = np.square(phase.residual - fit)
-        else:
-            r2 = np.square(phase.residual)
-        local = cv2.blur(r2, (local_px, local_px), dst=r2, borderType=cv2.BORDER_REFLECT)
-        # fmax: a NaN neighbourhood (undecodable pixels) falls back on the model.
-        np.fmax(var, local, out=var)
-    var *= np.float32(0.5)
-    sig = np.sqrt(var, out=var)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        sig /= phase.amplitude
-    return sig
+        for sl in blocks:
+            r = phase.residual[sl]
+            if noise.harmonic != (0.0, 0.0):
+                # The pattern's second harmonic is no noise (the 4-step phase ignores it).
+                c2, s2 = noise.harmonic
+                two_psi = 2.0 * phase.phase_rad[sl]
+                fit = np.cos(two_psi) * np.float32(c2)
+                fit += np.sin(two_psi) * np.float32(s2)
+                fit *= mean[sl]
+                r = np.subtract(r, fit, out=fit)
+            np.square(r, out=out[sl])
+        cv2.blur(out, (local_px, local_px), dst=out, borderType=cv2.BORDER_REFLECT)
+    gain, read_var = np.float32(noise.gain), np.float32(noise.read_var)
+    for sl in blocks:
+        var = np.maximum(mean[sl], np.float32(0))
+        var *= gain
+        var += read_var
+        sig = out[sl]
+        if local_px > 1:
+            # fmax: a NaN neighbourhood (undecodable pixels) falls back on the model.
+            np.fmax(var, sig, out=var)
+        var *= np.float32(0.5)
+        np.sqrt(var, out=sig)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sig /= phase.amplitude[sl]
+    return out
 
 
 def carre_phase(

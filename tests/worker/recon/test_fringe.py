@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from worker.recon.fringe import (
+    FringePhase,
     IntensityNoise,
     carre_phase,
     four_step_phase,
@@ -270,3 +271,52 @@ def test_four_step_in_blocks_of_rows_gives_the_whole_frame_formulas():
     with np.errstate(divide="ignore", invalid="ignore"):
         np.testing.assert_array_equal(res.modulation, np.where(mean > 0, amp / mean, np.nan))
     assert np.isnan(res.modulation[-1, :3]).all()
+
+
+def test_four_step_writes_into_the_arrays_of_out():
+    # A previous result's arrays are written over (no fresh arrays); its None fields are
+    # allocated; the values are those of a call without out.
+    rng = np.random.default_rng(37)
+    frames = rng.uniform(0.0, 1.0, (4, 40, 30)).astype(np.float32)
+    fresh = four_step_phase(frames)
+    old = four_step_phase(rng.uniform(0.0, 1.0, (4, 40, 30)).astype(np.float32))
+    out = four_step_phase(frames, out=FringePhase(old.phase_rad, None, None, old.mean))
+    assert out.phase_rad is old.phase_rad and out.mean is old.mean
+    assert out.amplitude is not old.amplitude and out.residual is not old.residual
+    for field in ("phase_rad", "modulation", "amplitude", "mean", "residual"):
+        np.testing.assert_array_equal(getattr(out, field), getattr(fresh, field))
+    with pytest.raises(ValueError, match="out.mean"):
+        four_step_phase(frames, out=FringePhase(None, None, None, np.empty((40, 31), np.float32)))
+
+
+@pytest.mark.parametrize("harmonic", [(0.0, 0.0), (0.02, -0.01)])
+def test_phase_sigma_in_blocks_gives_the_whole_frame_formulas(harmonic):
+    # Rows are processed in cache-sized blocks (the last one partial), the local mean of r²
+    # in the output array: each pixel must get the whole-frame expressions' float32 values.
+    import cv2
+
+    from worker.recon.fringe import _BLOCK_PIXELS
+
+    rng = np.random.default_rng(41)
+    cols = 1000
+    rows = 2 * (_BLOCK_PIXELS // cols) + 5
+    frames = rng.uniform(0.0, 1.0, (4, rows, cols)).astype(np.float32)
+    frames[:, -1, :3] = 0.0  # B = 0: σ = inf
+    frames[:, 0, 7] = np.nan
+    res = four_step_phase(frames)
+    noise = IntensityNoise(read_var=1e-4, gain=2e-3, harmonic=harmonic)
+    var = np.maximum(res.mean, np.float32(0)) * np.float32(noise.gain)
+    var += np.float32(noise.read_var)
+    two_psi = 2.0 * res.phase_rad
+    fit = np.cos(two_psi) * np.float32(harmonic[0]) + np.sin(two_psi) * np.float32(harmonic[1])
+    r = res.residual - fit * res.mean if harmonic != (0.0, 0.0) else res.residual
+    local = cv2.blur(np.square(r), (5, 5), borderType=cv2.BORDER_REFLECT)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        expected = np.sqrt(np.fmax(var, local) * np.float32(0.5)) / res.amplitude
+        expected_model = np.sqrt(var * np.float32(0.5)) / res.amplitude
+    out = np.full((rows, cols), 7.0, np.float32)
+    assert phase_sigma_rad(res, noise, out=out) is out
+    np.testing.assert_array_equal(out, expected)
+    np.testing.assert_array_equal(phase_sigma_rad(res, noise), expected)
+    np.testing.assert_array_equal(phase_sigma_rad(res, noise, local_px=0), expected_model)
+    assert np.isinf(out[-1, :3]).all() and np.isnan(out[0, 7])
