@@ -100,3 +100,26 @@ def test_two_islands_each_have_zero_mean():
 def test_bad_input_names_the_argument(kwargs, culprit):
     with pytest.raises(ValueError, match=culprit):
         integrate_normals(kwargs.pop("normals"), **kwargs)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+@pytest.mark.parametrize("block_px", [7, 40, 10_000])
+def test_operator_in_row_blocks_is_the_whole_frame_formula(monkeypatch, workers, block_px):
+    # A·h = λh + Dxᵀ Wx Dx h + Dyᵀ Wy Dy h, summed in this order per pixel whatever the blocks.
+    from worker.recon import integrate
+
+    rng = np.random.default_rng(3)
+    rows, cols = 23, 9
+    h = rng.normal(size=(rows, cols)).astype(np.float32)
+    wx = rng.random((rows, cols - 1)).astype(np.float32)
+    wy = rng.random((rows - 1, cols)).astype(np.float32)
+    lam = rng.random((rows, cols)).astype(np.float32)
+    expected = lam * h
+    ex = wx * (h[:, 1:] - h[:, :-1])
+    expected[:, 1:] += ex
+    expected[:, :-1] -= ex
+    ey = wy * (h[1:] - h[:-1])
+    expected[1:] += ey
+    expected[:-1] -= ey
+    monkeypatch.setattr(integrate, "_APPLY_BLOCK_PX", block_px)
+    np.testing.assert_array_equal(integrate._apply(h, wx, wy, lam, workers), expected)
