@@ -85,7 +85,7 @@ def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int, f
     ok = m & np.isfinite(h)
     albedo = np.asarray(model.albedo_srgb8, np.uint8)
     (tmp / "quality").mkdir()
-    with ThreadPoolExecutor(max_workers=1) as pool, ThreadPoolExecutor(max_workers=1) as disk:
+    with ThreadPoolExecutor(max_workers=2) as pool, ThreadPoolExecutor(max_workers=1) as disk:
         # Each file goes to disk (write, fsync) in its own thread while the next is encoded:
         # the fsyncs wait on the device, not on a core.
         saved = []
@@ -95,7 +95,8 @@ def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int, f
 
         # albedo.png and the GLB's base colour texture are the same PNG: encoded once.
         albedo_png = _png_bytes("albedo.png", albedo)
-        # model.glb (full-resolution textures) is the largest part: it is built beside the rest.
+        # model.glb (full-resolution textures) and mesh.ply, the largest parts, are built
+        # beside the images and grids.
         glb_job = pool.submit(
             glb_bytes,
             h,
@@ -106,10 +107,12 @@ def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int, f
             max_triangles=max_glb_triangles,
             albedo_png=albedo_png,
         )
+        mesh_job = pool.submit(_write_mesh, save, model.pixel_size_um, h, n, ok, albedo)
         save("albedo.png", albedo_png)
-        mesh = _write_grids(save, model, h, n, ok, albedo)
+        _write_grids(save, m, h, n)
         for name, arr in model.quality.items():
             save(f"quality/{name}.npy", npy_bytes(np.asarray(arr)))
+        mesh = mesh_job.result()
         glb, info = glb_job.result()
         save("model.glb", glb)
         for job in saved:
@@ -129,17 +132,18 @@ def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int, f
     return report
 
 
-def _write_grids(save: Callable[[str, bytes], None], model: ModelArrays, h, n, ok, albedo):
-    """height.npy, normals.npy, mask.png, normals.png and mesh.ply, each handed to
-    `save(name, bytes)`; returns the full-resolution mesh."""
-    m = np.asarray(model.mask, bool)
+def _write_grids(save: Callable[[str, bytes], None], mask, h, n) -> None:
+    """height.npy, normals.npy, mask.png and normals.png, each handed to `save(name, bytes)`."""
     save("height.npy", npy_bytes(h))
     save("normals.npy", npy_bytes(n))
-    save("mask.png", _png_bytes("mask.png", np.where(m, 255, 0).astype(np.uint8)))
+    save("mask.png", _png_bytes("mask.png", np.where(mask, 255, 0).astype(np.uint8)))
     rgb = np.where(np.isfinite(n), np.clip(np.rint((n + 1.0) * 127.5), 0, 255), 0).astype(np.uint8)
     save("normals.png", _png_bytes("normals.png", rgb))
 
-    mesh = grid_mesh(h, ok, pixel_size_um=model.pixel_size_um)
+
+def _write_mesh(save: Callable[[str, bytes], None], pixel_size_um: float, h, n, ok, albedo):
+    """mesh.ply, handed to `save`; returns the full-resolution mesh."""
+    mesh = grid_mesh(h, ok, pixel_size_um=pixel_size_um)
     vn = n[mesh.rows, mesh.cols]
     vn = np.where(np.isfinite(vn), vn, np.array([0, 0, -1], np.float32))
     save(

@@ -60,6 +60,11 @@ def _lerp_index(n_out: int, samples: np.ndarray):
     return left, right, (pos - left).astype(np.float32)
 
 
+# Rows per block of `_tangent_space_blocks` hold about this many pixels: the block's dozen
+# (rows, W, 3) temporaries stay in the core's cache instead of streaming through memory.
+_BLOCK_PX = 32_768
+
+
 def tangent_space_normals(
     normals: np.ndarray, mesh_normal_grid: np.ndarray, rows: np.ndarray, cols: np.ndarray
 ) -> np.ndarray:
@@ -71,24 +76,42 @@ def tangent_space_normals(
     The mesh normal at a pixel is the bilinear interpolation of the grid's, done one axis
     after the other, in float32 (the texture keeps 8 bits).
     """
+    out = np.empty((*np.shape(normals)[:2], 3), np.float32)
+
+    def keep(block: slice, tangent_n: np.ndarray) -> None:
+        out[block] = tangent_n
+
+    _tangent_space_blocks(normals, mesh_normal_grid, rows, cols, keep)
+    return out
+
+
+def _tangent_space_blocks(normals, mesh_normal_grid, rows, cols, emit) -> None:
+    """`tangent_space_normals` by blocks of rows: emit(row slice, its (rows, W, 3) normals).
+
+    Every pixel's value is computed alone (interpolation, frame, three dot products), so
+    the blocks give the whole frame's values.
+    """
     h, w = normals.shape[:2]
     grid = np.asarray(mesh_normal_grid, np.float32)
     r0, r1, fr = _lerp_index(h, rows)
     c0, c1, fc = _lerp_index(w, cols)
-    fr = fr[:, None, None]
-    by_row = grid[r0] * (1 - fr) + grid[r1] * fr
     fc = fc[None, :, None]
-    mesh_n = by_row[:, c0] * (1 - fc)
-    mesh_n += by_row[:, c1] * fc
-    mesh_n /= np.maximum(np.linalg.norm(mesh_n, axis=-1, keepdims=True), np.float32(1e-12))
-    t, b = _frame(mesh_n)
-    n = np.asarray(normals, np.float32)
-    ok = np.all(np.isfinite(n), axis=-1)
-    n = np.where(ok[..., None], n, mesh_n)
-    out = np.empty((h, w, 3), np.float32)
-    for k, axis in enumerate((t, b, mesh_n)):
-        np.einsum("hwc,hwc->hw", n, axis, out=out[..., k])
-    return out
+    step = max(1, _BLOCK_PX // w)
+    for start in range(0, h, step):
+        block = slice(start, min(start + step, h))
+        f = fr[block, None, None]
+        by_row = grid[r0[block]] * (1 - f) + grid[r1[block]] * f
+        mesh_n = by_row[:, c0] * (1 - fc)
+        mesh_n += by_row[:, c1] * fc
+        mesh_n /= np.maximum(np.linalg.norm(mesh_n, axis=-1, keepdims=True), np.float32(1e-12))
+        t, b = _frame(mesh_n)
+        n = np.asarray(normals[block], np.float32)
+        ok = np.all(np.isfinite(n), axis=-1)
+        n = np.where(ok[..., None], n, mesh_n)
+        out = np.empty(n.shape, np.float32)
+        for k, axis in enumerate((t, b, mesh_n)):
+            np.einsum("hwc,hwc->hw", n, axis, out=out[..., k])
+        emit(block, out)
 
 
 def _png(rgb8: np.ndarray) -> bytes:
@@ -125,8 +148,12 @@ def glb_bytes(
     grid_n = np.zeros((len(rs), len(cs), 3), np.float32)
     grid_n[..., 2] = -1.0
     grid_n[np.searchsorted(rs, mesh.rows), np.searchsorted(cs, mesh.cols)] = vn
-    tangent_n = tangent_space_normals(normals, grid_n, rs, cs)
-    normal_tex = np.clip(np.rint((tangent_n + 1.0) * 127.5), 0, 255).astype(np.uint8)
+    normal_tex = np.empty((h, w, 3), np.uint8)
+
+    def to_texels(block: slice, tangent_n: np.ndarray) -> None:
+        normal_tex[block] = np.clip(np.rint((tangent_n + 1.0) * 127.5), 0, 255)
+
+    _tangent_space_blocks(normals, grid_n, rs, cs, to_texels)
     t, _ = _frame(vn.astype(np.float64))
     tangents = np.concatenate([t, np.ones((len(vn), 1))], axis=1).astype(np.float32)
     uv = np.stack([(mesh.cols + 0.5) / w, (mesh.rows + 0.5) / h], axis=1).astype(np.float32)

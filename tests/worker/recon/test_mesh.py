@@ -137,3 +137,25 @@ def test_glb_takes_the_albedo_png_the_caller_encoded():
     plain = glb_bytes(h, mask, n, albedo, pixel_size_um=S_UM, max_triangles=800)
     given = glb_bytes(h, mask, n, albedo, pixel_size_um=S_UM, max_triangles=800, albedo_png=png)
     assert given == plain
+
+
+def test_tangent_space_normals_and_glb_do_not_depend_on_the_row_blocks(monkeypatch):
+    from worker.recon import glb
+
+    rng = np.random.default_rng(2)
+    rows, cols = 37, 29
+    h = rng.normal(0, 20, (rows, cols)).astype(np.float32)
+    mask = np.ones((rows, cols), bool)
+    mask[:4, :6] = False
+    n = rng.normal(size=(rows, cols, 3)).astype(np.float32)
+    n[..., 2] = -np.abs(n[..., 2]) - 0.5
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    n[5, 7] = np.nan
+    albedo = rng.integers(0, 256, (rows, cols, 3), dtype=np.uint8)
+    grid = rng.normal(size=(5, 4, 3)).astype(np.float32)
+    rs, cs = np.array([0, 9, 18, 27, 36]), np.array([0, 9, 18, 28])
+    whole_n = tangent_space_normals(n, grid, rs, cs)
+    whole_glb = glb_bytes(h, mask, n, albedo, pixel_size_um=S_UM, max_triangles=300)
+    monkeypatch.setattr(glb, "_BLOCK_PX", 2 * cols + 1)  # blocks of 2 rows, one of 1 at the end
+    np.testing.assert_array_equal(tangent_space_normals(n, grid, rs, cs), whole_n)
+    assert glb_bytes(h, mask, n, albedo, pixel_size_um=S_UM, max_triangles=300) == whole_glb
