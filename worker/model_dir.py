@@ -21,7 +21,7 @@ from worker.durable import npy_bytes, replace_dir_atomic, write_new_file
 from worker.recon.glb import glb_bytes
 from worker.recon.mesh import grid_mesh, ply_bytes
 
-__all__ = ["ModelArrays", "write_model_dir"]
+__all__ = ["ModelArrays", "albedo_png_bytes", "write_model_dir"]
 
 
 class ModelArrays:
@@ -36,6 +36,7 @@ class ModelArrays:
         mask: np.ndarray,
         pixel_size_um: float,
         quality: Mapping[str, np.ndarray],
+        albedo_png: bytes | None = None,
     ):
         self.height_um = height_um
         self.normals = normals
@@ -43,6 +44,9 @@ class ModelArrays:
         self.mask = mask
         self.pixel_size_um = pixel_size_um
         self.quality = dict(quality)
+        # albedo.png as `albedo_png_bytes(albedo_srgb8)` gives it, when the caller encoded
+        # it already (beside other work); encoded by the writer otherwise.
+        self.albedo_png = albedo_png
 
 
 def _png_bytes(name: str, image: np.ndarray) -> bytes:
@@ -52,6 +56,11 @@ def _png_bytes(name: str, image: np.ndarray) -> bytes:
     if not ok:
         raise OSError(f"{name}: PNG encoding failed")
     return buf.tobytes()
+
+
+def albedo_png_bytes(albedo_srgb8: np.ndarray) -> bytes:
+    """albedo.png's bytes for the (H, W, 3) sRGB albedo (`ModelArrays.albedo_png`)."""
+    return _png_bytes("albedo.png", np.asarray(albedo_srgb8, np.uint8))
 
 
 def write_model_dir(
@@ -94,7 +103,9 @@ def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int, f
             saved.append(disk.submit(write_new_file, tmp / name, data))
 
         # albedo.png and the GLB's base colour texture are the same PNG: encoded once.
-        albedo_png = _png_bytes("albedo.png", albedo)
+        albedo_png = model.albedo_png
+        if albedo_png is None:
+            albedo_png = albedo_png_bytes(albedo)
         # model.glb (full-resolution textures) and mesh.ply, the largest parts, are built
         # beside the images and grids.
         glb_job = pool.submit(

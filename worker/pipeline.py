@@ -20,7 +20,7 @@ from scipy import ndimage
 
 from worker.bundle import BundleError, open_bundle
 from worker.measure import Measurements, ReconstructionError, measure_bundle
-from worker.model_dir import ModelArrays, write_model_dir
+from worker.model_dir import ModelArrays, albedo_png_bytes, write_model_dir
 from worker.recon.color import linear_to_srgb8
 from worker.recon.fringe import four_step_phase
 from worker.recon.fusion import fuse_default, sharpen_heights
@@ -100,41 +100,40 @@ def reconstruct_bundle(
         )
     timings["mask"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    report_progress("fusion", 0.84)
-    height, normals_of, used_surface = _surface(
-        meas, mask, fusion=fusion, surface=surface, blur_sigma_px=blur_px
-    )
-    if used_surface == "default":
-        # The normals are those of the fused surface before its cliff pixels are refined
-        # (`surface_of`): they are computed beside the refinement.
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            normals_job = pool.submit(normals_of)
+    with ThreadPoolExecutor(max_workers=1) as side:
+        # What depends on the mask alone is prepared beside the fusion, whose solves leave a
+        # core idle (it waits for the colour stage first). The fusion keeps the mask unless
+        # a height comes out NaN, checked below.
+        side_mask = mask.copy()
+        prepared = side.submit(_mask_products, meas, side_mask)
+        t0 = time.perf_counter()
+        report_progress("fusion", 0.84)
+        height, normals_of, used_surface = _surface(
+            meas, mask, fusion=fusion, surface=surface, blur_sigma_px=blur_px
+        )
+        if used_surface == "default":
+            # The normals are those of the fused surface before its cliff pixels are refined
+            # (`surface_of`): they are computed beside the refinement.
+            with ThreadPoolExecutor(max_workers=1) as pool:
+                normals_job = pool.submit(normals_of)
+                timings["fusion"] = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                height = refine_walls(meas, height, mask, blur_sigma_px=blur_px)
+                normals = normals_job.result()
+            timings["walls"] = time.perf_counter() - t0
+        else:
+            normals = normals_of()
             timings["fusion"] = time.perf_counter() - t0
-            t0 = time.perf_counter()
-            height = refine_walls(meas, height, mask, blur_sigma_px=blur_px)
-            normals = normals_job.result()
-        timings["walls"] = time.perf_counter() - t0
-    else:
-        normals = normals_of()
-        timings["fusion"] = time.perf_counter() - t0
-    mask &= np.isfinite(height)
-    meas.finish()  # the colour stage ran in the background meanwhile
+        on_mask = prepared.result()  # after the colour stage (re-raising its errors)
     if "color" in meas.timings:
         timings["color"] = meas.timings["color"]
+    mask = mask & np.isfinite(height)
+    if not np.array_equal(mask, side_mask):
+        on_mask = _mask_products(meas, mask)
 
-    quality = _quality_maps(meas, height, mask)
-    report = _report(meas, mask, quality, fusion=fusion, surface=used_surface)
+    quality = _quality_maps(meas, height, mask, on_mask.quality)
+    report = _report(meas, mask, quality, on_mask.figures, fusion=fusion, surface=used_surface)
     report["quality"]["camera_blur_sigma_px"] = blur_px
-    if meas.rgb_srgb8 is not None:  # encoded by the colour stage; sRGB(0) = 0
-        albedo8 = np.where(mask[..., None], meas.rgb_srgb8, np.uint8(0))
-    else:
-        rgb = (
-            meas.rgb_linear
-            if meas.rgb_linear is not None
-            else np.repeat(meas.albedo[..., None], 3, 2)
-        )
-        albedo8 = linear_to_srgb8(np.where(mask[..., None], rgb, 0))
 
     t0 = time.perf_counter()
     report_progress("write", 0.90)
@@ -142,10 +141,11 @@ def reconstruct_bundle(
     model = ModelArrays(
         height_um=height,
         normals=normals,
-        albedo_srgb8=albedo8,
+        albedo_srgb8=on_mask.albedo_srgb8,
         mask=mask,
         pixel_size_um=meas.pixel_size_um,
         quality=quality,
+        albedo_png=on_mask.albedo_png,
     )
 
     def finish(rep: dict) -> dict:
@@ -362,26 +362,27 @@ def _unit_normals(normals, h, mask, s):
     return _normals_from_height(h, mask, s)
 
 
-def _quality_maps(meas: Measurements, height, mask) -> dict[str, np.ndarray]:
-    out: dict[str, np.ndarray] = {}
+class _MaskProducts:
+    """The outputs that depend on the tablet mask alone (`_mask_products`)."""
+
+    def __init__(self, quality, figures, albedo_srgb8, albedo_png):
+        self.quality = quality  # the quality maps but the fringe disagreement
+        self.figures = figures  # the report's quality figures of those maps and the mask
+        self.albedo_srgb8 = albedo_srgb8
+        self.albedo_png = albedo_png
+
+
+def _mask_products(meas: Measurements, mask: np.ndarray) -> _MaskProducts:
+    """Quality maps, report figures and albedo texture (with its PNG) on the mask.
+
+    Waits for the stages still running in the background (the colour)."""
+    meas.finish()
+    quality: dict[str, np.ndarray] = {}
     if meas.residual is not None:
-        out["photometric_residual"] = np.where(mask, meas.residual, np.nan).astype(np.float32)
-        out["lights_used"] = np.where(mask, meas.lights_used, 0).astype(np.int16)
+        quality["photometric_residual"] = np.where(mask, meas.residual, np.nan).astype(np.float32)
+        quality["lights_used"] = np.where(mask, meas.lights_used, 0).astype(np.int16)
     if meas.modulation is not None:
-        out["fringe_modulation"] = np.where(mask, meas.modulation, np.nan).astype(np.float32)
-    if meas.fringe_height_um is not None:
-        out["fringe_disagreement_um"] = np.where(
-            mask, meas.fringe_height_um - height, np.nan
-        ).astype(np.float32)
-    return out
-
-
-def _median(a, mask):
-    v = a[mask & np.isfinite(a)]
-    return float(np.median(v)) if v.size else None
-
-
-def _report(meas: Measurements, mask, quality, *, fusion, surface) -> dict:
+        quality["fringe_modulation"] = np.where(mask, meas.modulation, np.nan).astype(np.float32)
     q = {
         "tablet_pixels": int(mask.sum()),
         "tablet_fraction_of_image": float(mask.mean()),
@@ -397,6 +398,36 @@ def _report(meas: Measurements, mask, quality, *, fusion, surface) -> dict:
         q["median_lights_used"] = _median(quality["lights_used"].astype(np.float32), mask)
     if "fringe_modulation" in quality:
         q["median_modulation"] = _median(quality["fringe_modulation"], mask)
+    if meas.rgb_srgb8 is not None:  # encoded by the colour stage; sRGB(0) = 0
+        albedo8 = np.where(mask[..., None], meas.rgb_srgb8, np.uint8(0))
+    else:
+        rgb = (
+            meas.rgb_linear
+            if meas.rgb_linear is not None
+            else np.repeat(meas.albedo[..., None], 3, 2)
+        )
+        albedo8 = linear_to_srgb8(np.where(mask[..., None], rgb, 0))
+    return _MaskProducts(quality, q, albedo8, albedo_png_bytes(albedo8))
+
+
+def _quality_maps(meas: Measurements, height, mask, on_mask: dict) -> dict[str, np.ndarray]:
+    """The quality maps: those of the mask alone (`_mask_products`) and the fringes'
+    disagreement with the surface."""
+    out = dict(on_mask)
+    if meas.fringe_height_um is not None:
+        out["fringe_disagreement_um"] = np.where(
+            mask, meas.fringe_height_um - height, np.nan
+        ).astype(np.float32)
+    return out
+
+
+def _median(a, mask):
+    v = a[mask & np.isfinite(a)]
+    return float(np.median(v)) if v.size else None
+
+
+def _report(meas: Measurements, mask, quality, figures, *, fusion, surface) -> dict:
+    q = dict(figures)
     if "fringe_disagreement_um" in quality:
         d = quality["fringe_disagreement_um"]
         q["median_abs_disagreement_um"] = _median(np.abs(d), mask)

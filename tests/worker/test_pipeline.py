@@ -131,3 +131,39 @@ def test_fringe_surface_median_is_scipy_s():
     med = ndimage.median_filter(np.where(finite, m, fill), size=5, mode="nearest")
     expected = np.where(mask, fill_holes(np.where(finite, med, np.nan), mask), np.nan)
     np.testing.assert_array_equal(_fringe_surface(h, mask), expected.astype(np.float32))
+
+
+def test_outputs_of_the_mask_follow_a_surface_that_shrank_it(tmp_path, monkeypatch):
+    # The mask's own outputs are prepared beside the fusion on the mask it was given; a
+    # surface height that comes out NaN takes its pixel off the mask, and every output of
+    # the mask must then follow (albedo, mask.png, quality maps, report figures).
+    import cv2
+
+    from worker import pipeline
+
+    simulate_scan(tmp_path / "sim", seed=1, preset="quick", noise="default", size=SIZE)
+    holes = []
+
+    def refine_with_holes(meas, height, mask, *, blur_sigma_px):
+        h = real_refine(meas, height, mask, blur_sigma_px=blur_sigma_px).copy()
+        rows, cols = np.nonzero(mask)
+        holes.extend(zip(rows[::500], cols[::500], strict=True))
+        for r, c in holes:
+            h[r, c] = np.nan
+        return h
+
+    real_refine = pipeline.refine_walls
+    monkeypatch.setattr(pipeline, "refine_walls", refine_with_holes)
+    out = tmp_path / "m"
+    report = pipeline.reconstruct_bundle(tmp_path / "sim" / "bundle", out)
+    assert len(holes) >= 10
+    r, c = np.array(holes).T
+    mask = cv2.imread(str(out / "mask.png"), cv2.IMREAD_UNCHANGED) > 0
+    albedo = cv2.imread(str(out / "albedo.png"), cv2.IMREAD_UNCHANGED)
+    residual = np.load(out / "quality" / "photometric_residual.npy")
+    assert not mask[r, c].any()
+    assert np.all(albedo[r, c] == 0)
+    assert np.all(np.isnan(residual[r, c])) and np.all(np.isfinite(residual[mask]))
+    assert report["quality"]["tablet_pixels"] == int(mask.sum())
+    expected = float(np.median(residual[np.isfinite(residual)]))
+    assert report["quality"]["median_residual"] == expected
