@@ -24,6 +24,7 @@ from worker.recon.parallel import run_blocks
 from worker.recon.photometric_fit import (
     _DENSE_LIGHTS,
     Model,
+    _select,
     asymmetric_refine,
     cone_resolve,
     estimate_sigma,
@@ -227,7 +228,7 @@ def photometric_stereo(
         n /= np.linalg.norm(n, axis=1)[:, None]
         pred = lights32 @ b.astype(np.float32).T
         m = inl.sum(axis=0)
-        sq = np.where(inl, (s - pred) ** 2, 0.0).sum(axis=0)
+        sq = _select(inl, (s - pred) ** 2).sum(axis=0)
         with np.errstate(divide="ignore", invalid="ignore"):
             res = np.sqrt(sq / np.maximum(m, 1)) / rho
         normals[idx] = np.where(ok[:, None], n, np.nan)

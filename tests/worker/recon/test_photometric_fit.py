@@ -130,3 +130,46 @@ def test_leverage_is_the_hat_matrix_diagonal():
         h = np.einsum("ki,ij,kj->k", lights, np.linalg.inv(sel.T @ sel), lights)
         np.testing.assert_allclose(lev[:, p], h, rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(lev[[0, 5, 10], 0], 1.0, rtol=1e-4)
+
+
+def test_select_is_np_where_bit_for_bit():
+    # The bit-mask select stands in for np.where in the fit: the very same bits, signed
+    # zeros, infinities and NaN included, with a column mask broadcast over the lights.
+    from worker.recon.photometric_fit import _select
+
+    rng = np.random.default_rng(7)
+    x = rng.normal(size=(16, 513)).astype(np.float32)
+    x[0, :4] = [np.nan, np.inf, -np.inf, -0.0]
+    other = rng.normal(size=x.shape).astype(np.float32)
+    mask = rng.random(x.shape) < 0.7
+    cols = rng.random(x.shape[1]) < 0.5
+    for m in (mask, cols[None, :]):
+        for b in (0.0, 1.0, -np.inf, other):
+            want = np.where(m, x, b)
+            got = _select(m, x, b)
+            assert got.dtype == want.dtype and got.shape == want.shape
+            np.testing.assert_array_equal(got.view(np.int32), want.view(np.int32))
+        flags = rng.random(x.shape) < 0.5
+        np.testing.assert_array_equal(_select(m, flags, mask), np.where(m, flags, mask))
+
+
+def test_column_gather_and_scatter_match_fancy_indexing():
+    from worker.recon.photometric_fit import _cols, _rows, _set_cols
+
+    rng = np.random.default_rng(8)
+    x = rng.normal(size=(16, 300)).astype(np.float32)
+    idx = np.sort(rng.choice(300, 120, replace=False))
+    keep = rng.random(300) < 0.4
+    np.testing.assert_array_equal(_cols(x, idx), x[:, idx])
+    np.testing.assert_array_equal(_cols(x, keep), x[:, keep])
+    assert _cols(x, idx).flags.c_contiguous
+    b = rng.normal(size=(300, 3))
+    np.testing.assert_array_equal(_rows(b, idx), b[idx])
+    np.testing.assert_array_equal(_rows(b, keep), b[keep])
+    y, want = x.copy(), x.copy()
+    values = rng.normal(size=(16, idx.size)).astype(np.float32)
+    _set_cols(y, idx, values)
+    want[:, idx] = values
+    np.testing.assert_array_equal(y, want)
+    with pytest.raises(ValueError, match="C-ordered"):
+        _set_cols(np.asfortranarray(x), idx, values)
