@@ -113,10 +113,17 @@ def flat_field(
             out[i] = np.nan
             return
         scale = np.float32(rho_ref * np.cos(np.deg2rad(theta[i])))
-        ok = np.isfinite(r) & (r > np.float32(min_reference_fraction * bright)) & (r > 0)
+        # Straight into the output, in place: a frame's temporaries cost more than its
+        # arithmetic, and np.where's per-element branch several times more.
+        s = out[i]
         with np.errstate(divide="ignore", invalid="ignore"):
-            s = obj3[i] / r * scale
-        out[i] = np.where(ok & np.isfinite(s), s, np.float32(np.nan))
+            np.divide(obj3[i], r, out=s)
+            s *= scale
+        ok = r > np.float32(min_reference_fraction * bright)
+        ok &= r > 0
+        ok &= np.isfinite(r)
+        ok &= np.isfinite(s)
+        np.copyto(s, np.float32(np.nan), where=~ok)
 
     run_blocks(frame, range(k), workers=workers)
     return out.reshape(obj.shape)
