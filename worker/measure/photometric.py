@@ -23,23 +23,34 @@ def _source_footprint(ref_stack, frames, height_um, pixel_size_um, workers=1):
     which tilts the normals by about a degree.
     """
     rows, cols = height_um.shape
-    r, c = np.mgrid[0:rows, 0:cols].astype(np.float32)
+    # Pixel coordinates as a row and a column, broadcast (the same maps as full grids).
+    r = np.arange(rows, dtype=np.float32)[:, None]
+    c = np.arange(cols, dtype=np.float32)[None, :]
+    # Frames of one source direction (the colour channels of an azimuth) share their maps.
+    sources: dict[tuple[float, float], list[int]] = {}
+    for k, f in enumerate(frames):
+        sources.setdefault((float(f.polar_deg), float(f.azimuth_deg)), []).append(k)
+    groups = list(sources.items())
 
-    def shift_frame(k: int) -> None:
-        f = frames[k]
-        shift = height_um * np.float32(np.tan(np.radians(f.polar_deg)) / pixel_size_um)
-        phi = np.radians(f.azimuth_deg)
-        map_x = c - shift * np.float32(np.sin(phi))
-        map_y = r - shift * np.float32(np.cos(phi))
-        ref_stack[k] = cv2.remap(
-            ref_stack[k],
-            map_x,
-            map_y,
-            interpolation=cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_REPLICATE,
-        )
+    def shift_frames(g: int) -> None:
+        (polar_deg, azimuth_deg), ks = groups[g]
+        shift = height_um * np.float32(np.tan(np.radians(polar_deg)) / pixel_size_um)
+        phi = np.radians(azimuth_deg)
+        # map = grid − shift·(sin φ, cos φ), the products computed into the map arrays.
+        map_x = np.multiply(shift, np.float32(np.sin(phi)))
+        np.subtract(c, map_x, out=map_x)
+        shift *= np.float32(np.cos(phi))
+        map_y = np.subtract(r, shift, out=shift)
+        for k in ks:
+            ref_stack[k] = cv2.remap(
+                ref_stack[k],
+                map_x,
+                map_y,
+                interpolation=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_REPLICATE,
+            )
 
-    run_blocks(shift_frame, range(len(frames)), workers=workers)
+    run_blocks(shift_frames, range(len(groups)), workers=workers)
     return ref_stack
 
 
