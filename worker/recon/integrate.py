@@ -126,10 +126,15 @@ def _dct_preconditioner(shape, w_bar, lam_bar, workers=1):
     rows, cols = shape
     ky = 2.0 - 2.0 * np.cos(np.pi * np.arange(rows) / rows)
     kx = 2.0 - 2.0 * np.cos(np.pi * np.arange(cols) / cols)
-    denom = w_bar * (ky[:, None] + kx[None, :]) + lam_bar
-    inv = np.zeros_like(denom)
-    np.divide(1.0, denom, out=inv, where=denom > 0)
-    inv = inv.astype(np.float32)
+    # w̄·(k_y + k_x) + λ̄ and its inverse (0 where it vanishes) in place: whole-frame float64
+    # temporaries cost more in page faults than in arithmetic.
+    denom = ky[:, None] + kx[None, :]
+    denom *= w_bar
+    denom += lam_bar
+    positive = denom > 0
+    np.divide(1.0, denom, out=denom, where=positive)
+    denom[~positive] = 0
+    inv = denom.astype(np.float32)
 
     def apply(r, overwrite=False):
         # The 1-D transforms of each axis are independent: threads give the same values.
@@ -179,8 +184,8 @@ def solve_screened_poisson(
         return _solve_padded(
             tx, ty, wx, wy, data_um, data_weight, x0_um, rtol, max_iter, fast, workers
         )
-    tx = np.where(wx > 0, np.nan_to_num(np.asarray(tx, np.float32)), np.float32(0))
-    ty = np.where(wy > 0, np.nan_to_num(np.asarray(ty, np.float32)), np.float32(0))
+    tx = _finite_f32(tx, wx > 0)
+    ty = _finite_f32(ty, wy > 0)
     if data_weight is None:
         lam = np.zeros((rows, cols), np.float32)
         data = np.zeros((rows, cols), np.float32)
@@ -190,7 +195,7 @@ def solve_screened_poisson(
             raise ValueError(f"data_um and data_weight must have shape {(rows, cols)}")
         if np.any(lam < 0):
             raise ValueError("data_weight must be non-negative")
-        data = np.where(lam > 0, np.nan_to_num(np.asarray(data_um, np.float32)), np.float32(0))
+        data = _finite_f32(data_um, lam > 0)
 
     deg = lam.copy()
     deg[:, 1:] += wx
@@ -237,11 +242,7 @@ def solve_screened_poisson(
             return z
 
     b = _rhs(tx, ty, wx, wy, lam, data)
-    h = (
-        np.zeros((rows, cols), np.float32)
-        if x0_um is None
-        else np.nan_to_num(np.asarray(x0_um, np.float32)).copy()
-    )
+    h = np.zeros((rows, cols), np.float32) if x0_um is None else _finite_f32(x0_um)
     r = b - _apply(h, wx, wy, lam, workers)
     b_norm = float(np.linalg.norm(b)) or 1.0
     z = precond(r)
@@ -268,7 +269,19 @@ def solve_screened_poisson(
         it += 1
         res = float(np.linalg.norm(r)) / b_norm
     h[free] = 0
-    return ScreenedPoisson(height_um=h.astype(np.float32), iterations=it, relative_residual=res)
+    return ScreenedPoisson(height_um=h, iterations=it, relative_residual=res)
+
+
+def _finite_f32(values, keep=None):
+    """np.nan_to_num(values) as a new float32 array, 0 where `keep` is False; nan_to_num's
+    passes (and copy) only when a value is not finite."""
+    if keep is None:
+        out = np.array(values, np.float32)
+    else:
+        out = np.where(keep, np.asarray(values, np.float32), np.float32(0))
+    if not np.isfinite(out).all():
+        np.nan_to_num(out, copy=False)
+    return out
 
 
 def _solve_padded(tx, ty, wx, wy, data_um, data_weight, x0_um, rtol, max_iter, fast, workers):

@@ -123,3 +123,19 @@ def test_operator_in_row_blocks_is_the_whole_frame_formula(monkeypatch, workers,
     expected[:-1] -= ey
     monkeypatch.setattr(integrate, "_APPLY_BLOCK_PX", block_px)
     np.testing.assert_array_equal(integrate._apply(h, wx, wy, lam, workers), expected)
+
+
+def test_solver_inputs_are_cleaned_like_nan_to_num():
+    # Targets, data and start heights: NaN → 0 and ±inf → the largest float32 where kept,
+    # 0 where their weight is 0; finite inputs pass unchanged (and are copied).
+    from worker.recon.integrate import _finite_f32
+
+    values = np.array([[1.5, np.nan, np.inf], [-np.inf, 2.0, np.nan]], np.float64)
+    keep = np.array([[True, True, True], [True, False, False]])
+    expected = np.where(keep, np.nan_to_num(values.astype(np.float32)), np.float32(0))
+    np.testing.assert_array_equal(_finite_f32(values, keep), expected)
+    np.testing.assert_array_equal(_finite_f32(values), np.nan_to_num(values.astype(np.float32)))
+    finite = np.arange(6, dtype=np.float32).reshape(2, 3)
+    out = _finite_f32(finite)
+    assert out.dtype == np.float32 and out is not finite
+    np.testing.assert_array_equal(out, finite)
