@@ -347,9 +347,14 @@ def _normals_from_height(h, mask, s):
     idx = ndimage.distance_transform_edt(~finite, return_distances=False, return_indices=True)
     filled = h[tuple(idx)]
     gy, gx = np.gradient(filled.astype(np.float64), s)
-    n = np.stack([-gx, -gy, -np.ones_like(gx)], axis=-1)
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    return np.where(mask[..., None], n, np.nan).astype(np.float32)
+    # n = (−gx, −gy, −1)/‖·‖ component by component: the same values as dividing the stacked
+    # (H, W, 3) vectors by np.linalg.norm (per pixel (gx² + gy²) + 1 in that order), without
+    # its whole-frame float64 temporaries.
+    norm = np.sqrt(gx * gx + gy * gy + 1.0)
+    out = np.empty((*h.shape, 3), np.float32)
+    for k, component in enumerate((gx, gy, np.ones_like(gx))):
+        out[..., k] = np.where(mask, -component / norm, np.nan)
+    return out
 
 
 def _unit_normals(normals, h, mask, s):

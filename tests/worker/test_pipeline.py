@@ -167,3 +167,21 @@ def test_outputs_of_the_mask_follow_a_surface_that_shrank_it(tmp_path, monkeypat
     assert report["quality"]["tablet_pixels"] == int(mask.sum())
     expected = float(np.median(residual[np.isfinite(residual)]))
     assert report["quality"]["median_residual"] == expected
+
+
+def test_normals_from_height_are_the_stacked_vectors_normalised():
+    # Component by component, the same values as dividing the stacked (−gx, −gy, −1) by
+    # np.linalg.norm; NaN off the mask.
+    from worker.pipeline import _normals_from_height
+
+    rng = np.random.default_rng(5)
+    for scale in (1.0, 100.0, 1e4):
+        h = (rng.normal(size=(40, 57)) * scale).astype(np.float32)
+        mask = rng.random(h.shape) > 0.2
+        h[~mask] = np.nan
+        idx = ndimage.distance_transform_edt(~mask, return_distances=False, return_indices=True)
+        gy, gx = np.gradient(h[tuple(idx)].astype(np.float64), 3.0)
+        n = np.stack([-gx, -gy, -np.ones_like(gx)], axis=-1)
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        expected = np.where(mask[..., None], n, np.nan).astype(np.float32)
+        np.testing.assert_array_equal(_normals_from_height(h, mask, 3.0), expected)
