@@ -22,6 +22,8 @@ import numpy as np
 __all__ = ["ColorResult", "grey_reflectance", "linear_to_srgb8", "rgb_reflectance"]
 
 _CHANNELS = {"red": 0, "green": 1, "blue": 2}
+# Pixels per block of the per-pixel work: a block's (A, n) arrays stay in cache.
+_BLOCK_PIXELS = 1 << 16
 
 
 @dataclass(frozen=True)
@@ -52,16 +54,19 @@ def _consensus_centre(est: np.ndarray, band: float) -> np.ndarray:
     finite = np.isfinite(est)
     # support[j] = #{i : |est_i − est_j| ≤ band·est_j, both finite}. |est_i − est_j| is
     # symmetric: each pair is differenced once and tested against both ends.
+    d = np.empty(est.shape[1], np.float32)
     with np.errstate(invalid="ignore"):
         tol = [band * est[j] for j in range(a)]
         support = [(finite[j] & (np.float32(0) <= tol[j])).astype(np.int16) for j in range(a)]
         for i in range(a):
             for j in range(i + 1, a):
-                d = np.abs(est[j] - est[i])
+                np.abs(np.subtract(est[j], est[i], out=d), out=d)
                 support[i] += d <= tol[i]
                 support[j] += d <= tol[j]
     # A non-finite sample neither has support nor gives it (inf − inf is NaN, inf ≤ inf).
-    support = [np.where(finite[j], support[j], np.int16(0)) for j in range(a)]
+    for j in range(a):
+        support[j] *= finite[j]
+    # Masked copies rather than np.where, whose per-element branch is the slower.
     best = np.full(est.shape[1], np.nan, dtype=np.float32)
     best_support = np.zeros(est.shape[1], dtype=np.int16)
     for j in range(a):
@@ -70,9 +75,38 @@ def _consensus_centre(est: np.ndarray, band: float) -> np.ndarray:
             better = (support[j] > best_support) | (
                 (support[j] == best_support) & (support[j] > 0) & (c < best)
             )
-        best = np.where(better, c, best)
-        best_support = np.where(better, support[j], best_support)
+        np.copyto(best, c, where=better)
+        np.copyto(best_support, support[j], where=better)
     return best
+
+
+def _channel_reflectance(sc, ls, nt, min_cos, band, min_reflectance):
+    """Reflectance of one channel and the samples averaged, (n,) each, from its (A, n)
+    shading ``sc``, its (A, 3) light directions ``ls`` and the (3, n) normals ``nt``."""
+    # n·l as three multiply-adds, (A, n): as fast as BLAS, whose threads would spin
+    # beside the stages that run concurrently with this one.
+    cos = ls[:, :1] * nt[0]
+    cos += ls[:, 1:2] * nt[1]
+    cos += ls[:, 2:3] * nt[2]
+    est = np.full(sc.shape, np.nan, np.float32)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        np.divide(sc, cos, out=est, where=cos >= min_cos)
+        # A cast shadow leaves ρ ≈ 0 (noise only): below min_reflectance nothing is usable.
+        np.copyto(est, np.float32(np.nan), where=~(est >= min_reflectance))
+    centre = _consensus_centre(est, band)
+    # Samples within the band around the centre (a NaN sample or centre compares False;
+    # the centre is finite wherever it has support), summed in sample order.
+    tol = band * centre
+    total = np.zeros(centre.shape, np.float32)
+    cnt = np.zeros(centre.shape, np.int16)
+    d = np.empty(centre.shape, np.float32)
+    for j in range(sc.shape[0]):
+        with np.errstate(invalid="ignore"):
+            keep = np.abs(np.subtract(est[j], centre, out=d), out=d) <= tol
+        cnt += keep
+        np.add(total, est[j], out=total, where=keep)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(cnt > 0, total / cnt, np.float32(np.nan)), cnt
 
 
 def _channel_index(channel) -> np.ndarray:
@@ -146,36 +180,17 @@ def rgb_reflectance(
     rgb = np.full((3, h * w), np.nan, dtype=np.float32)
     used = np.zeros((3, h * w), dtype=np.int16)
     nt = np.ascontiguousarray(n.reshape(-1, 3).T)
+    s_flat = s.reshape(k, h * w)
     for c in range(3):
         sel = np.flatnonzero(ch == c)
         if sel.size == 0:
             continue
-        # n·l as three multiply-adds, (k_c, N): as fast as BLAS, whose threads would spin
-        # beside the stages that run concurrently with this one.
-        ls = lights[sel]
-        cos = ls[:, :1] * nt[0]
-        cos += ls[:, 1:2] * nt[1]
-        cos += ls[:, 2:3] * nt[2]
-        sc = s[sel].reshape(sel.size, -1)
-        est = np.full(sc.shape, np.nan, np.float32)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            np.divide(sc, cos, out=est, where=cos >= min_cos)
-            # A cast shadow leaves ρ ≈ 0 (noise only): below min_reflectance nothing is usable.
-            np.copyto(est, np.float32(np.nan), where=~(est >= min_reflectance))
-        centre = _consensus_centre(est, band)
-        # Samples within the band around the centre (a NaN sample or centre compares False;
-        # the centre is finite wherever it has support), summed in sample order.
-        tol = band * centre
-        total = np.zeros(centre.shape, np.float32)
-        cnt = np.zeros(centre.shape, np.int16)
-        for j in range(sel.size):
-            with np.errstate(invalid="ignore"):
-                keep = np.abs(est[j] - centre) <= tol
-            cnt += keep
-            total += np.where(keep, est[j], np.float32(0))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            rgb[c] = np.where(cnt > 0, total / cnt, np.float32(np.nan))
-        used[c] = cnt
+        # Pixels are independent: the work runs block by block, in cache.
+        for start in range(0, h * w, _BLOCK_PIXELS):
+            px = slice(start, start + _BLOCK_PIXELS)
+            rgb[c, px], used[c, px] = _channel_reflectance(
+                s_flat[sel, px], lights[sel], nt[:, px], min_cos, band, min_reflectance
+            )
     missing = np.any(~np.isfinite(rgb), axis=0)
     fallback = np.zeros(h * w, dtype=bool)
     if fallback_albedo is not None:

@@ -83,3 +83,28 @@ def test_simulated_bundle_colour_against_ground_truth(simulated_recon):
     # at n·l ≈ 0.7 adds ≈ 2.5 % of ρ ≈ 0.01.  0.02 catches a wrong channel or reference.
     assert np.all(np.nanmedian(e, axis=0) < 0.02)
     assert np.mean(np.isfinite(r.rgb[r.mask])) > 0.99
+
+
+def test_rgb_reflectance_does_not_depend_on_the_pixel_blocks(monkeypatch):
+    # Pixels are independent: blocks of any size (here 7 px, the last one partial) give
+    # the very same bits as one block, shadows, highlights and unusable samples included.
+    import worker.recon.color as color
+
+    rng = np.random.default_rng(9)
+    h, w = 9, 11
+    ls = light_directions(np.tile(np.arange(4) * 90.0 + 20.0, 3), 45.0)
+    normals = rng.normal(size=(h, w, 3)) * [0.3, 0.3, 1.0]
+    normals[..., 2] = -np.abs(normals[..., 2])
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    cos = np.einsum("hwc,kc->khw", normals, ls)
+    s = (rng.uniform(0.1, 0.8, (12, h, w)) * np.clip(cos, 0, None)).astype(np.float32)
+    s[rng.uniform(size=s.shape) < 0.1] += 0.5
+    s[rng.uniform(size=s.shape) < 0.05] = np.nan
+    s[:4, 2, 3] = np.nan  # no red sample at all there
+    channels = [c for c in ("red", "green", "blue") for _ in range(4)]
+    whole = rgb_reflectance(s, channels, ls, normals)
+    monkeypatch.setattr(color, "_BLOCK_PIXELS", 7)
+    blocks = rgb_reflectance(s, channels, ls, normals)
+    np.testing.assert_array_equal(blocks.rgb.view(np.int32), whole.rgb.view(np.int32))
+    np.testing.assert_array_equal(blocks.samples_used, whole.samples_used)
+    assert np.any(whole.samples_used > 0) and np.any(np.isnan(whole.rgb))
