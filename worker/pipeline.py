@@ -159,7 +159,7 @@ def reconstruct_bundle(
 
 
 def _mask(meas: Measurements) -> np.ndarray:
-    has_n = np.all(np.isfinite(meas.normals), axis=-1) if meas.normals is not None else None
+    has_n = _has_normal(meas.normals) if meas.normals is not None else None
     has_h = np.isfinite(meas.fringe_height_um) if meas.fringe_height_um is not None else None
     brightness = meas.albedo
     return tablet_mask(
@@ -168,6 +168,14 @@ def _mask(meas: Measurements) -> np.ndarray:
         has_height=has_h,
         modulation=meas.modulation,
         height_um=meas.fringe_height_um,
+    )
+
+
+def _has_normal(normals: np.ndarray) -> np.ndarray:
+    """(H, W) bool: all three components finite (component by component: numpy's
+    reduction over the length-3 last axis is ~20× slower)."""
+    return (
+        np.isfinite(normals[..., 0]) & np.isfinite(normals[..., 1]) & np.isfinite(normals[..., 2])
     )
 
 
@@ -391,7 +399,7 @@ def _mask_products(meas: Measurements, mask: np.ndarray) -> _MaskProducts:
     q = {
         "tablet_pixels": int(mask.sum()),
         "tablet_fraction_of_image": float(mask.mean()),
-        "coverage": float(np.isfinite(meas.normals).all(-1)[mask].mean())
+        "coverage": float(_has_normal(meas.normals)[mask].mean())
         if meas.normals is not None
         else float(np.isfinite(meas.fringe_height_um)[mask].mean()),
         "fringe_coverage": float(np.isfinite(meas.fringe_height_um)[mask].mean())

@@ -185,3 +185,13 @@ def test_normals_from_height_are_the_stacked_vectors_normalised():
         n /= np.linalg.norm(n, axis=-1, keepdims=True)
         expected = np.where(mask[..., None], n, np.nan).astype(np.float32)
         np.testing.assert_array_equal(_normals_from_height(h, mask, 3.0), expected)
+
+
+def test_has_normal_is_all_components_finite():
+    from worker.pipeline import _has_normal
+
+    rng = np.random.default_rng(6)
+    n = rng.normal(size=(9, 11, 3)).astype(np.float32)
+    n[rng.random(n.shape) < 0.1] = np.nan
+    n[0, 0, 2] = np.inf
+    np.testing.assert_array_equal(_has_normal(n), np.all(np.isfinite(n), axis=-1))
