@@ -95,7 +95,8 @@ def tablet_mask(
     fg &= measured
     if modulation is not None and fg.any():
         m = np.asarray(modulation, np.float32)
-        typical = np.nanmedian(np.where(fg, m, np.nan))
+        tablet_m = m[fg & ~np.isnan(m)]  # np.nanmedian's values, without a whole-frame copy
+        typical = np.median(tablet_m) if tablet_m.size else np.float32(np.nan)
         if np.isfinite(typical):
             weak = ~(m > 0.2 * typical)
             if has_normal is not None:
@@ -115,7 +116,7 @@ def tablet_mask(
     labels, count = ndimage.label(fg)
     if count == 0:
         return fg
-    sizes = ndimage.sum(fg, labels, index=np.arange(1, count + 1))
+    sizes = np.bincount(labels.ravel(), minlength=count + 1)[1:]  # pixels per part
     keep = np.concatenate([[False], sizes >= min_part_fraction * sizes.max()])
     fg = keep[labels]
     fg = _fill_holes(fg)
