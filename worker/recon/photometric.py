@@ -24,6 +24,7 @@ from worker.recon.parallel import run_blocks
 from worker.recon.photometric_fit import (
     _DENSE_LIGHTS,
     Model,
+    _count,
     _select,
     asymmetric_refine,
     cone_resolve,
@@ -227,7 +228,7 @@ def photometric_stereo(
         n[:, 2] = np.minimum(n[:, 2], -1e-3)
         n /= np.linalg.norm(n, axis=1)[:, None]
         pred = lights32 @ b.astype(np.float32).T
-        m = inl.sum(axis=0)
+        m = _count(inl)
         sq = _select(inl, (s - pred) ** 2).sum(axis=0)
         with np.errstate(divide="ignore", invalid="ignore"):
             res = np.sqrt(sq / np.maximum(m, 1)) / rho

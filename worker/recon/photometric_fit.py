@@ -101,18 +101,23 @@ def _inverse_sym3(m6: np.ndarray, min_condition: float):
     returns it as (6, N) float64 (0 where not ok) and the conditioning mask ``ok``."""
     # Rows of a (6, N) array: every term below is a contiguous pass.
     a, b, c, d, e, f = np.ascontiguousarray(m6, dtype=np.float64)
-    cof = np.empty((6, m6.shape[1]))
-    np.subtract(d * f, e * e, out=cof[0])
-    np.subtract(c * e, b * f, out=cof[1])
-    np.subtract(b * e, c * d, out=cof[2])
-    np.subtract(a * f, c * c, out=cof[3])
-    np.subtract(b * c, a * e, out=cof[4])
-    np.subtract(a * d, b * b, out=cof[5])
-    det = a * cof[0] + b * cof[1] + c * cof[2]
-    tr = (a + d + f) / 3.0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ok = det > min_condition * tr**3
-        cof *= np.where(ok, 1.0 / det, 0.0)
+    n = m6.shape[1]
+    cof, tmp = np.empty((6, n)), np.empty(n)
+    # Each cofactor p·q − r·s with the products rounded as written, into its row.
+    for row, (p, q, r, s) in enumerate(
+        ((d, f, e, e), (c, e, b, f), (b, e, c, d), (a, f, c, c), (b, c, a, e), (a, d, b, b))
+    ):
+        np.multiply(p, q, out=cof[row])
+        cof[row] -= np.multiply(r, s, out=tmp)
+    det = a * cof[0]
+    det += np.multiply(b, cof[1], out=tmp)
+    det += np.multiply(c, cof[2], out=tmp)
+    tr = np.add(a, d, out=tmp)
+    tr += f
+    tr /= 3.0
+    ok = det > min_condition * tr**3
+    # 1/det only where ok (det > 0 there): no division by zero to silence.
+    cof *= np.divide(1.0, det, out=np.zeros(n), where=ok)
     return cof, ok
 
 
@@ -123,7 +128,7 @@ def _fit(s, weight, lights32, ll6):
     # reads in contiguous passes (bit for bit the transpose of (N, K) @ (K, 6)).
     m6 = ll6.T @ w
     rhs = lights32.T @ (w * s)
-    enough = _count(weight > 0) >= 3
+    enough = _count(weight if weight.dtype == bool else weight > 0) >= 3
     b, ok = _solve_sym3(m6, rhs, 1e-3)
     ok &= enough
     return b, ok
@@ -301,7 +306,9 @@ class Model:
             lev = _leverage(sub, self.ll6)
             # Externally studentised: the deleted residual r/(1 − h) has variance
             # σ²/(1 − h), so r/sqrt(1 − h) is compared with the tolerance.
-            ratio = raw / np.sqrt(np.maximum(1.0 - lev, np.float32(1e-3)))
+            ratio = np.subtract(np.float32(1.0), lev, out=lev)
+            np.maximum(ratio, np.float32(1e-3), out=ratio)
+            ratio = np.divide(raw, np.sqrt(ratio, out=ratio), out=ratio)
             n_in = _count(sub)
             worst = ratio.max(axis=0)
             bad = np.flatnonzero((worst > 1.0) & (n_in > 3))
