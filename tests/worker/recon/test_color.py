@@ -108,3 +108,28 @@ def test_rgb_reflectance_does_not_depend_on_the_pixel_blocks(monkeypatch):
     np.testing.assert_array_equal(blocks.rgb.view(np.int32), whole.rgb.view(np.int32))
     np.testing.assert_array_equal(blocks.samples_used, whole.samples_used)
     assert np.any(whole.samples_used > 0) and np.any(np.isnan(whole.rgb))
+
+
+def test_linear_to_srgb8_float32_table_matches_the_formula():
+    # The float32 path encodes by table: the very codes of the float64 formula, around
+    # every code boundary, on random patterns of [0, 1] and on the values it clips.
+    def formula(x):
+        x = np.clip(np.nan_to_num(np.float64(x), nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+        v = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+        return np.round(255.0 * v).astype(np.uint8)
+
+    rng = np.random.default_rng(10)
+    one = int(np.float32(1.0).view(np.int32))
+    bits = rng.integers(0, one + 1, 200_000)
+    # Each code's first float32 and its neighbours (found from the formula, not the table).
+    grid = np.arange(0, one + 1, 4096)
+    first = grid[np.flatnonzero(np.diff(formula(grid.astype(np.int32).view(np.float32))))]
+    near = (first[:, None] + np.arange(-4096, 4097, 64)).clip(0, one).ravel()
+    x = np.concatenate([bits, near]).astype(np.int32).view(np.float32)
+    specials = np.array([np.nan, -np.nan, np.inf, -np.inf, -0.0, -1.0, 1.5, 1e30, 1e-45])
+    x = np.concatenate([specials.astype(np.float32), x])
+    x = x[: x.size // 3 * 3].reshape(-1, 3)
+    got = linear_to_srgb8(x)
+    assert got.dtype == np.uint8 and got.shape == x.shape
+    np.testing.assert_array_equal(got, formula(x))
+    np.testing.assert_array_equal(got, linear_to_srgb8(x.astype(np.float64)))
