@@ -41,6 +41,7 @@ afterwards.
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 
 import numpy as np
 
@@ -56,6 +57,7 @@ __all__ = [
     "cell_average_targets_um",
     "fuse_default",
     "sharpen_heights",
+    "term_leverages",
     "transverse_mean_slopes",
     "variance_factors",
 ]
@@ -147,12 +149,15 @@ def fuse_default(
         sx, sy = cell_average_targets_um(ax, ay, pixel_size_um=s)
         return np.where(gap_x, np.float32(0), sx), np.where(gap_y, np.float32(0), sy)
 
-    if workers > 1:  # only the last solve needs them: computed beside the first one
-        pool = ThreadPoolExecutor(max_workers=1)
-        targets = pool.submit(final_targets).result
-        pool.shutdown(wait=False)  # the job runs on; nothing else is submitted
-    else:
-        targets = final_targets
+    # What only the later steps need (the final targets, the terms' leverages) is computed
+    # beside the first solve, which leaves a core idle, when there are workers for it.
+    side = ThreadPoolExecutor(max_workers=1) if workers > 1 else None
+
+    def beside(job):
+        """job's result, to fetch by calling: computed in the side thread if any, else then."""
+        return job if side is None else side.submit(job).result
+
+    targets = beside(final_targets)
 
     f_c = f[crop]
     has_f = m_c & np.isfinite(f_c) & np.isfinite(sig_f[crop])
@@ -182,17 +187,31 @@ def fuse_default(
     # With a robust pass to follow, the first solve only sets the weights (and warm-starts
     # the last solve): 1e-3 is enough for residuals judged at 4σ.
     first_rtol = max(rtol, 1e-3) if robust_pass else rtol
+    estimate = variance_components and has_f.any()
+    leverages = beside(partial(term_leverages, lam, wx, wy)) if estimate else None
+    if side is not None:
+        side.shutdown(wait=False)  # the jobs run on; nothing else is submitted
     sol = solve_screened_poisson(
         tx, ty, wx, wy, data_um=f_c, data_weight=lam, x0_um=x0, rtol=first_rtol, workers=workers
     )
     h = sol.height_um
     sx, sy = targets()
-    if variance_components and has_f.any():
+    if estimate:
         # One round of variance component estimation on the pilot solve: dividing each
         # class's weights by its factor balances the groups as the data say, and the
         # robust thresholds below become those of the estimated noise.
         fx, fy, ff = variance_factors(
-            h, f_c, lam, wx, wy, tx, ty, cut_x=cut_x, cut_y=cut_y, classes=variance_classes
+            h,
+            f_c,
+            lam,
+            wx,
+            wy,
+            tx,
+            ty,
+            cut_x=cut_x,
+            cut_y=cut_y,
+            classes=variance_classes,
+            leverages=leverages(),
         )
         wx, wy, lam = wx / fx, wy / fy, lam / ff
         sig_f = np.array(sig_f, np.float32)
@@ -228,7 +247,9 @@ def fuse_default(
     return out
 
 
-def variance_factors(h, f, lam, wx, wy, tx, ty, *, cut_x=None, cut_y=None, classes=8):
+def variance_factors(
+    h, f, lam, wx, wy, tx, ty, *, cut_x=None, cut_y=None, classes=8, leverages=None
+):
     """Variance factors of the slope and height terms, per class of predicted noise.
 
     Variance component estimation (Helmert 1924; Förstner 1979; Koch 1999 §3.6): if the
@@ -247,22 +268,13 @@ def variance_factors(h, f, lam, wx, wy, tx, ty, *, cut_x=None, cut_y=None, class
     of the estimate (they take their class's factor).
 
     h: solved (H, W) µm; f, lam: fringe heights and their weights; wx, wy, tx, ty: slope
-    terms as in `fuse_default`. Returns (fx, fy, ff): factors shaped like wx, wy, lam
+    terms as in `fuse_default`; leverages: `term_leverages(lam, wx, wy)` if computed
+    already (they do not depend on h). Returns (fx, fy, ff): factors shaped like wx, wy, lam
     (1 where a class has fewer than 25 residuals); dividing the weights by them makes them
     honest.
     """
     has = lam > 0
-    stiff = np.zeros_like(lam)
-    stiff[:, 1:] += wx
-    stiff[:, :-1] += wx
-    stiff[1:, :] += wy
-    stiff[:-1, :] += wy
-    with np.errstate(divide="ignore", invalid="ignore"):
-        m = lam / (stiff / 4)
-    lev_p = np.where(has, np.where(stiff > 0, _hat_diag(m), 1), 0).astype(np.float32)
-    n_edges = int(np.count_nonzero(wx) + np.count_nonzero(wy))
-    n_active = int(np.count_nonzero(has | (stiff > 0)))
-    lev_e = float(np.clip((n_active - lev_p.sum()) / max(n_edges, 1), 0, 0.99))
+    lev_p, lev_e = term_leverages(lam, wx, wy) if leverages is None else leverages
 
     with np.errstate(divide="ignore", invalid="ignore"):
         uf = (h - f) * np.sqrt(lam / np.maximum(1 - lev_p, 1e-2))
@@ -276,6 +288,24 @@ def variance_factors(h, f, lam, wx, wy, tx, ty, *, cut_x=None, cut_y=None, class
     height_factor = _class_factors(lam[has], uf[has], classes)
     ff = np.where(has, height_factor(lam), np.float32(1))
     return edge_factor(wx), edge_factor(wy), ff
+
+
+def term_leverages(lam, wx, wy):
+    """Leverages of the terms (`variance_factors`): (H, W) float32 of the height terms
+    (0 without one, 1 for a pixel without edges) and the one shared by every slope term."""
+    has = lam > 0
+    stiff = np.zeros_like(lam)
+    stiff[:, 1:] += wx
+    stiff[:, :-1] += wx
+    stiff[1:, :] += wy
+    stiff[:-1, :] += wy
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m = lam / (stiff / 4)
+    lev_p = np.where(has, np.where(stiff > 0, _hat_diag(m), 1), 0).astype(np.float32)
+    n_edges = int(np.count_nonzero(wx) + np.count_nonzero(wy))
+    n_active = int(np.count_nonzero(has | (stiff > 0)))
+    lev_e = float(np.clip((n_active - lev_p.sum()) / max(n_edges, 1), 0, 0.99))
+    return lev_p, lev_e
 
 
 def _class_factors(weights, u, classes, max_factor=1e4):

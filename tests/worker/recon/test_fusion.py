@@ -363,10 +363,18 @@ def test_variance_classes_separate_edges_whose_noise_was_ranked_wrongly():
     sol = solve_screened_poisson(
         tx.astype(np.float32), ty.astype(np.float32), wx, wy, data_um=f, data_weight=lam, rtol=1e-6
     )
-    fx, fy, _ = variance_factors(sol.height_um, f, lam, wx, wy, tx, ty, classes=2)
+    fx, fy, ff = variance_factors(sol.height_um, f, lam, wx, wy, tx, ty, classes=2)
     assert np.allclose(fx[left_x], 9.0, rtol=0.15)
     assert np.allclose(fx[~left_x], 1.0, rtol=0.15)
     assert np.allclose(fy[left_y], 9.0, rtol=0.15)
+    # The leverages do not depend on the solution: computed beforehand, the same factors.
+    from worker.recon.fusion import term_leverages
+
+    given = variance_factors(
+        sol.height_um, f, lam, wx, wy, tx, ty, classes=2, leverages=term_leverages(lam, wx, wy)
+    )
+    for a, b in zip(given, (fx, fy, ff), strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_variance_components_help_when_the_normals_are_worse_than_claimed():
