@@ -44,6 +44,7 @@ from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
 import numpy as np
+from scipy import ndimage
 
 from worker.recon.integrate import (
     _bbox,
@@ -181,7 +182,8 @@ def fuse_default(
             max_step=np.float32(s * _MAX_SLOPE),
         )
         lam = np.where(stranded, np.float32(0), lam)
-    lam = _anchor_parts_without_data(m_c, lam, wx, wy)
+    parts = ndimage.label(m_c)  # the mask's connected parts: anchored, then zero-mean
+    lam = _anchor_parts_without_data(parts, m_c, lam, wx, wy)
     x0 = np.where(has_f, f_c, np.float32(np.nanmedian(f_c[has_f]) if has_f.any() else 0))
     robust_pass = has_f.any() and outlier_sigmas > 0 and robust_passes > 0
     # With a robust pass to follow, the first solve only sets the weights (and warm-starts
@@ -242,7 +244,7 @@ def fuse_default(
                 workers=workers,
             )
             h = sol.height_um
-    h = _zero_mean_where_no_data(h, m_c, has_f)
+    h = _zero_mean_where_no_data(parts, h, m_c, has_f)
     out[crop] = np.where(m_c, h, np.nan)
     return out
 
@@ -602,10 +604,10 @@ def _step_consistent(f, sig_f, has_f, wx, wy, tx, ty, *, k):
     return has_f & (votes >= 2)
 
 
-def _zero_mean_where_no_data(h, mask, has_data):
-    from scipy import ndimage
-
-    labels, count = ndimage.label(mask)
+def _zero_mean_where_no_data(parts, h, mask, has_data):
+    """h less its mean on each connected part of the mask (parts: ndimage.label(mask))
+    that has no data."""
+    labels, count = parts
     if count == 0:
         return h
     data_count = np.bincount(labels.ravel(), weights=has_data.ravel(), minlength=count + 1)
@@ -629,16 +631,15 @@ def _edge_weight(wa, wb):
     return np.where((wa > 0) & (wb > 0), w, 0).astype(np.float32)
 
 
-def _anchor_parts_without_data(mask, lam, wx, wy):
+def _anchor_parts_without_data(parts, mask, lam, wx, wy):
     """Give a faint pull towards 0 to connected parts that no fringe height reaches.
 
     Such a part (a photometric-only bundle, or an island shadowed for every azimuth) is
     defined by its slopes up to a constant; the faint term fixes that constant at 0 mean
     without bending the surface (it is 1e-6 of the part's mean slope weight).
+    parts: ndimage.label(mask).
     """
-    from scipy import ndimage
-
-    labels, count = ndimage.label(mask)
+    labels, count = parts
     if count == 0:
         return lam
     has_data = np.bincount(labels.ravel(), weights=(lam > 0).ravel(), minlength=count + 1)[1:] > 0
