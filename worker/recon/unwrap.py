@@ -223,34 +223,45 @@ def noise_aware_unwrap(
     n_lev = w.shape[0]
     rows = w.shape[1]
     shape = w.shape[1:]
-    out_est = np.empty(shape, dtype=np.float32)
-    out_info = np.empty(shape, dtype=np.float32)
-    out_worst = np.empty(shape, dtype=np.float32)
-    out_level = np.empty(shape, dtype=np.int16)
-    out_conf = np.empty(shape, dtype=np.int16)
+    out = {
+        name: np.empty(shape, dtype=dtype)
+        for name, dtype in (
+            ("est", np.float32),
+            ("worst", np.float32),
+            ("info", np.float32),
+            ("sigma", np.float32),
+            ("level", np.int16),
+            ("conflicts", np.int16),
+        )
+    }
     # Blocks of rows small enough for the CPU cache: the level loop makes ~30 passes over
     # each, which on whole megapixel images would be bound by memory bandwidth.
     step = max(1, 32768 // max(1, int(np.prod(shape[1:], dtype=np.int64))))
     consts = (q, np.float32(p[0] / p[1]) if n_lev > 1 else None, z, log_eps, k2, model_sigma_rad)
+    nan = np.float32(np.nan)
 
     def unwrap_rows(r0: int) -> None:
         sl = slice(r0, min(rows, r0 + step))
         est, info, worst, level, conf = _unwrap_block(w[:, sl], sig[:, sl], *consts)
-        out_est[sl], out_info[sl], out_worst[sl] = est, info, worst
-        out_level[sl], out_conf[sl] = level, conf
+        # The outputs' NaN and 0 where the estimate is not, in the block still in cache.
+        finite = np.isfinite(est) & (info > 0)
+        with np.errstate(divide="ignore"):
+            sigma = np.float32(1.0) / np.sqrt(info)
+        out["est"][sl] = np.where(finite, est, nan)
+        out["worst"][sl] = np.where(finite, worst, nan)
+        out["info"][sl] = np.where(finite, info, np.float32(0))
+        out["sigma"][sl] = np.where(finite, sigma, nan)
+        out["level"][sl], out["conflicts"][sl] = level, conf
 
     # Pixels are independent: the blocks may run in threads.
     run_blocks(unwrap_rows, range(0, rows, step), workers=workers)
-    finite = np.isfinite(out_est) & (out_info > 0)
-    with np.errstate(divide="ignore"):
-        sigma = np.float32(1.0) / np.sqrt(out_info)
     return UnwrappedPhase(
-        dpsi_rad=np.where(finite, out_est, np.float32(np.nan)),
-        order_residual=np.where(finite, out_worst, np.float32(np.nan)),
-        level_used=out_level,
-        weight=np.where(finite, out_info, np.float32(0)),
-        sigma_rad=np.where(finite, sigma, np.float32(np.nan)),
-        conflicts=out_conf,
+        dpsi_rad=out["est"],
+        order_residual=out["worst"],
+        level_used=out["level"],
+        weight=out["info"],
+        sigma_rad=out["sigma"],
+        conflicts=out["conflicts"],
     )
 
 
