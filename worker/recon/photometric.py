@@ -211,7 +211,8 @@ def photometric_stereo(
         )
         s = flat[:, idx].astype(np.float32)  # a copy: zeroed in place below
         valid = np.isfinite(s)
-        np.nan_to_num(s, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+        # The unusable samples zeroed (what nan_to_num does, in a fraction of its passes).
+        np.copyto(s, np.float32(0.0), where=~valid)
         cand, _ = initial_inliers(s, valid, shadow_fraction, abs_tol)
         model = Model(s, valid, lights32, ll6, shadow_fraction, outlier_tolerance, abs_tol, half32)
         b, ok, inl = robust_fit(model, cand, max_iterations)

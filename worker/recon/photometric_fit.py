@@ -601,8 +601,14 @@ def cone_resolve(model, cand, inl, b, ok, sigma, *, cone_deg=20.0, k_sigma=1.5, 
     cone_cos = np.where(few, np.cos(np.radians(cone_deg + 10.0)), np.cos(np.radians(cone_deg)))
     near = (cos_h > cone_cos.astype(np.float32)) & model.valid
     # Only inliers are suspects: a highlight the fit already rejects needs no re-solve.
-    suspect = near & inl & ((model.s - model.lights32 @ bc.T > np.float32(sigma)) | few[None])
-    redo = ok & np.any(suspect, axis=0) & (_count(model.valid & ~near) >= 3)
+    above = np.subtract(model.s, model.lights32 @ bc.T)
+    suspect = np.greater(above, np.float32(sigma), out=np.empty(above.shape, bool))
+    suspect |= few[None]
+    suspect &= near
+    suspect &= inl
+    outside = ~near
+    outside &= model.valid
+    redo = ok & np.any(suspect, axis=0) & (_count(outside) >= 3)
     cols = np.flatnonzero(redo)
     if cols.size == 0:
         return inl, b

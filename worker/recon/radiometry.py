@@ -119,8 +119,8 @@ def flat_field(
         with np.errstate(divide="ignore", invalid="ignore"):
             np.divide(obj3[i], r, out=s)
             s *= scale
+        # The threshold is ≥ 0 (bright > 0): above it, r > 0 too.
         ok = r > np.float32(min_reference_fraction * bright)
-        ok &= r > 0
         ok &= np.isfinite(r)
         ok &= np.isfinite(s)
         np.copyto(s, np.float32(np.nan), where=~ok)
