@@ -49,8 +49,9 @@ def grid_mesh(
     cs = _samples(cols_all, step)
     sub_m = m[np.ix_(rs, cs)]
     sub_h = h[np.ix_(rs, cs)]
-    index = np.full(sub_m.shape, -1, np.int64)
-    index[sub_m] = np.arange(int(sub_m.sum()))
+    # int32 like the faces (and half the memory traffic of the gathers below).
+    index = np.full(sub_m.shape, -1, np.int32)
+    index[sub_m] = np.arange(int(sub_m.sum()), dtype=np.int32)
     rr, cc = np.nonzero(sub_m)
     r_px, c_px = rs[rr], cs[cc]
     s_mm = pixel_size_um / 1000.0
@@ -69,7 +70,7 @@ def grid_mesh(
         np.stack([b[full], c[full], d[full]], 1),
     ]
     # Cells with exactly three corners: one triangle, same winding (right-hand normal to −z).
-    three = (ia.astype(int) + ib + ic + id_) == 3
+    three = (ia.view(np.uint8) + ib.view(np.uint8) + ic.view(np.uint8) + id_.view(np.uint8)) == 3
     for miss, tri in (
         (~ia, (b, c, d)),
         (~ib, (a, c, d)),
