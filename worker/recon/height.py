@@ -237,13 +237,14 @@ def _consensus_block(hf, sf, valid, k2):
     """:func:`consensus_azimuths` on (A, n) pixels; returns mean, spread, used, sigma (n,)."""
     a = hf.shape[0]
     hv = np.where(valid, hf, np.float32(0))
-    wv = np.where(valid, np.float32(1) / np.square(sf), np.float32(0))
+    sf2 = np.square(sf)  # once, not per candidate centre
+    wv = np.where(valid, np.float32(1) / sf2, np.float32(0))
     best_n = np.zeros(hf.shape[1], dtype=np.int16)
     best_w = np.zeros(hf.shape[1], dtype=np.float32)
     best = np.full(hf.shape[1], -1, dtype=np.int16)
     for c in range(a):
         with np.errstate(invalid="ignore", over="ignore"):
-            agree = np.square(hv - hv[c]) <= k2 * (np.square(sf) + np.square(sf[c]))
+            agree = np.square(hv - hv[c]) <= k2 * (sf2 + sf2[c])
         agree &= valid & valid[c]
         n = agree.sum(axis=0, dtype=np.int16)
         wsum = (wv * agree).sum(axis=0)
@@ -252,9 +253,9 @@ def _consensus_block(hf, sf, valid, k2):
         best_w = np.where(better, wsum, best_w)
         best = np.where(better, np.int16(c), best)
     centre = np.take_along_axis(hv, np.clip(best, 0, None)[None].astype(np.intp), axis=0)
-    sc = np.take_along_axis(sf, np.clip(best, 0, None)[None].astype(np.intp), axis=0)
+    sc2 = np.take_along_axis(sf2, np.clip(best, 0, None)[None].astype(np.intp), axis=0)
     with np.errstate(invalid="ignore", over="ignore"):
-        inl = valid & (np.square(hv - centre) <= k2 * (np.square(sf) + np.square(sc)))
+        inl = valid & (np.square(hv - centre) <= k2 * (sf2 + sc2))
     n_valid = valid.sum(axis=0)
     solved = (best >= 0) & ((best_n >= 2) | (n_valid == 1))
     inl &= solved[None]
