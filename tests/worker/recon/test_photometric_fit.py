@@ -173,3 +173,13 @@ def test_column_gather_and_scatter_match_fancy_indexing():
     np.testing.assert_array_equal(y, want)
     with pytest.raises(ValueError, match="C-ordered"):
         _set_cols(np.asfortranarray(x), idx, values)
+
+
+def test_row_norms_are_linalg_norm_bit_for_bit():
+    from worker.recon.photometric import _row_norms
+
+    rng = np.random.default_rng(11)
+    v = rng.normal(size=(100_000, 3)) * np.exp(rng.normal(size=(100_000, 3)) * 5)
+    v[:3] = [[0.0, 0.0, 0.0], [-0.0, 3.0, -4.0], [np.nan, 1.0, 1.0]]
+    for x in (v, v.astype(np.float32)):
+        np.testing.assert_array_equal(_row_norms(x), np.linalg.norm(x, axis=1))
