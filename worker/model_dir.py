@@ -89,8 +89,10 @@ def write_model_dir(
 
 def _fill(tmp: Path, model: ModelArrays, report: dict, max_glb_triangles: int, finish) -> dict:
     m = np.asarray(model.mask, bool)
-    h = np.where(m, model.height_um, np.nan).astype(np.float32)
-    n = np.where(m[..., None], model.normals, np.nan).astype(np.float32)
+    # Fresh arrays from np.where: cast only if they are not float32 already (the GLB and
+    # mesh jobs start once they are there).
+    h = np.where(m, model.height_um, np.nan).astype(np.float32, copy=False)
+    n = np.where(m[..., None], model.normals, np.nan).astype(np.float32, copy=False)
     ok = m & np.isfinite(h)
     albedo = np.asarray(model.albedo_srgb8, np.uint8)
     (tmp / "quality").mkdir()
