@@ -276,36 +276,31 @@ def phase_sigma_rad(
         out = np.empty((rows, cols), np.float32)
     elif out.shape != (rows, cols) or out.dtype != np.float32:
         raise ValueError(f"out must be ({rows}, {cols}) float32, got {out.shape} {out.dtype}")
-    # Row blocks that stay in the CPU cache, as in four_step_phase; the local mean of r² is
-    # formed in `out` itself, the one full-frame pass (the box filter needs the neighbours).
-    step = max(1, _BLOCK_PIXELS // max(cols, 1))
-    blocks = [slice(r0, r0 + step) for r0 in range(0, rows, step)]
+    # Whole-frame passes: in row blocks, as four_step_phase, they were no faster (the few
+    # arrays stay in the L3 cache; the blocks' calls add up); the local mean of r² is
+    # formed in `out` itself.
     if local_px > 1:
-        for sl in blocks:
-            r = phase.residual[sl]
-            if noise.harmonic != (0.0, 0.0):
-                # The pattern's second harmonic is no noise (the 4-step phase ignores it).
-                c2, s2 = noise.harmonic
-                two_psi = 2.0 * phase.phase_rad[sl]
-                fit = np.cos(two_psi) * np.float32(c2)
-                fit += np.sin(two_psi) * np.float32(s2)
-                fit *= mean[sl]
-                r = np.subtract(r, fit, out=fit)
-            np.square(r, out=out[sl])
+        r = phase.residual
+        if noise.harmonic != (0.0, 0.0):
+            # The pattern's second harmonic is no noise (the 4-step phase ignores it).
+            c2, s2 = noise.harmonic
+            two_psi = 2.0 * phase.phase_rad
+            fit = np.cos(two_psi) * np.float32(c2)
+            fit += np.sin(two_psi) * np.float32(s2)
+            fit *= mean
+            r = np.subtract(r, fit, out=fit)
+        np.square(r, out=out)
         cv2.blur(out, (local_px, local_px), dst=out, borderType=cv2.BORDER_REFLECT)
-    gain, read_var = np.float32(noise.gain), np.float32(noise.read_var)
-    for sl in blocks:
-        var = np.maximum(mean[sl], np.float32(0))
-        var *= gain
-        var += read_var
-        sig = out[sl]
-        if local_px > 1:
-            # fmax: a NaN neighbourhood (undecodable pixels) falls back on the model.
-            np.fmax(var, sig, out=var)
-        var *= np.float32(0.5)
-        np.sqrt(var, out=sig)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            sig /= phase.amplitude[sl]
+    var = np.maximum(mean, np.float32(0))
+    var *= np.float32(noise.gain)
+    var += np.float32(noise.read_var)
+    if local_px > 1:
+        # fmax: a NaN neighbourhood (undecodable pixels) falls back on the model.
+        np.fmax(var, out, out=var)
+    var *= np.float32(0.5)
+    np.sqrt(var, out=out)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out /= phase.amplitude
     return out
 
 
