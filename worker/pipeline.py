@@ -13,6 +13,7 @@ import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import wait as futures_wait
 
 import cv2
 import numpy as np
@@ -81,17 +82,44 @@ def reconstruct_bundle(
     try:
         with open_bundle(bundle_path) as bundle:
             meas = measure_bundle(bundle, progress=report_progress, color_in_background=True)
-            t0 = time.perf_counter()
-            blur_px = camera_blur_px(bundle, reference_modulation=meas.reference_modulation)
-            meas.timings["camera_blur"] = time.perf_counter() - t0
+            try:
+                t0 = time.perf_counter()
+                blur_px = camera_blur_px(bundle, reference_modulation=meas.reference_modulation)
+                meas.timings["camera_blur"] = time.perf_counter() - t0
+                model, report, timings = _model(
+                    meas, blur_px, fusion=fusion, surface=surface, progress=report_progress
+                )
+            finally:
+                # The colour stage decodes its frames in the background (`_model` waits for
+                # it, unless it failed first): the bundle is closed after it.
+                futures_wait(meas.pending)
     except BundleError as exc:
         raise ReconstructionError(str(exc)) from None
     except FileNotFoundError as exc:
         raise ReconstructionError(f"bundle: {exc}") from None
 
+    t0 = time.perf_counter()
+    report_progress("write", 0.90)
+
+    def finish(rep: dict) -> dict:
+        timings["write"] = time.perf_counter() - t0
+        timings["total"] = time.perf_counter() - t_start
+        return {**rep, "timings_s": dict(timings)}
+
+    report = write_model_dir(out_dir, model, report, finish_report=finish)
+    report_progress("done", 1.0)
+    return report
+
+
+def _model(
+    meas: Measurements, blur_px: float, *, fusion: str, surface: str, progress: Progress
+) -> tuple[ModelArrays, dict, dict]:
+    """Mask, surface, cliff refinement, quality maps and report from the measurements: the
+    model directory's arrays, its report and the stage timings (seconds, filled in further
+    by the caller)."""
     timings = dict(meas.timings)
     t0 = time.perf_counter()
-    report_progress("mask", 0.80)
+    progress("mask", 0.80)
     mask = _mask(meas)
     if mask.sum() < 16:
         raise ReconstructionError(
@@ -107,7 +135,7 @@ def reconstruct_bundle(
         side_mask = mask.copy()
         prepared = side.submit(_mask_products, meas, side_mask)
         t0 = time.perf_counter()
-        report_progress("fusion", 0.84)
+        progress("fusion", 0.84)
         height, normals_of, used_surface = _surface(
             meas, mask, fusion=fusion, surface=surface, blur_sigma_px=blur_px
         )
@@ -135,8 +163,6 @@ def reconstruct_bundle(
     report = _report(meas, mask, quality, on_mask.figures, fusion=fusion, surface=used_surface)
     report["quality"]["camera_blur_sigma_px"] = blur_px
 
-    t0 = time.perf_counter()
-    report_progress("write", 0.90)
     report["timings_s"] = timings
     model = ModelArrays(
         height_um=height,
@@ -147,15 +173,7 @@ def reconstruct_bundle(
         quality=quality,
         albedo_png=on_mask.albedo_png,
     )
-
-    def finish(rep: dict) -> dict:
-        timings["write"] = time.perf_counter() - t0
-        timings["total"] = time.perf_counter() - t_start
-        return {**rep, "timings_s": dict(timings)}
-
-    report = write_model_dir(out_dir, model, report, finish_report=finish)
-    report_progress("done", 1.0)
-    return report
+    return model, report, timings
 
 
 def _mask(meas: Measurements) -> np.ndarray:

@@ -164,3 +164,17 @@ def test_paper_fusion_replaces_an_existing_model(sim, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model"]
     data = (out / "model.glb").read_bytes()
     assert trimesh.load(io.BytesIO(data), file_type="glb").geometry
+
+
+def test_undecodable_colour_frame_is_named_and_nothing_is_written(sim, tmp_path):
+    # The colour frames are decoded in the background, beside the fusion: a frame that
+    # fails there is reported like any other (its file named), with OUTDIR untouched.
+    bundle = _subset(sim, tmp_path / "bundle", lambda f: True)
+    man = json.loads((bundle / "manifest.json").read_text())
+    colour = next(f for f in man["frames"] if f["kind"] == "color" and f["target"] == "object")
+    png = bundle / colour["file"]
+    png.write_bytes(png.read_bytes()[:120])  # the header survives, the pixels do not
+    out = tmp_path / "out"
+    with pytest.raises(ReconstructionError, match=colour["file"]):
+        reconstruct_bundle(bundle, out)
+    assert not out.exists()

@@ -29,9 +29,9 @@ def measure_bundle(
     """Run stages 1–5 on an open `worker.bundle.Bundle`.
 
     color_in_background: the colour stage, whose only product is the albedo texture, runs
-    in a thread on frames decoded already, and may outlive the call (and the open bundle);
-    `Measurements.finish()` waits for it.  Meanwhile its fields (rgb_linear, its warnings
-    and `used` entries) are not there yet.
+    in a thread, decoding its frames there, and outlives the call: the bundle must stay open
+    until `Measurements.finish()` has waited for it.  Meanwhile its fields (rgb_linear, its
+    warnings and `used` entries) are not there yet.
     """
     man = bundle.manifest
     cam = man.camera
@@ -65,7 +65,7 @@ def measure_bundle(
             if jobs or len(photo) < 3:
                 return
             jobs["photo"] = pool.submit(decode_with_references, bundle, photo)
-            if color:
+            if color and background is None:
                 jobs["color"] = pool.submit(decode_with_references, bundle, color)
 
         t0 = time.perf_counter()
@@ -106,11 +106,11 @@ def measure_bundle(
             )
 
         progress("color", 0.75)
-        if color and background is not None and color_stacks is not None:
+        if color and background is not None and meas.normals is not None:
+            # Its frames are decoded there too: in the fringe stage's last seconds both cores
+            # are busy, while the photometric fit and the fusion leave one partly idle.
             meas.pending.append(
-                background.submit(
-                    _color, bundle, color, meas, rho_ref, color_stacks.result(), encode=True
-                )
+                background.submit(_color, bundle, color, meas, rho_ref, None, encode=True)
             )
         elif color:
             stacks = color_stacks.result() if color_stacks is not None else None
