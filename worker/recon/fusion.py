@@ -53,6 +53,7 @@ from worker.recon.integrate import (
     slopes_from_normals,
     solve_screened_poisson,
 )
+from worker.recon.parallel import run_blocks
 
 __all__ = [
     "cell_average_targets_um",
@@ -214,34 +215,35 @@ def fuse_default(
             cut_y=cut_y,
             classes=variance_classes,
             leverages=leverages(),
+            workers=workers,
         )
         wx, wy, lam = wx / fx, wy / fy, lam / ff
-        sig_f = np.array(sig_f, np.float32)
-        sig_f[crop] *= np.sqrt(ff)
+        sig_f_c = sig_f[crop] * np.sqrt(ff)
         if not robust_pass:
             h = solve_screened_poisson(
                 sx, sy, wx, wy, data_um=f_c, data_weight=lam, x0_um=h, rtol=rtol, workers=workers
             ).height_um
+    else:
+        sig_f_c = sig_f[crop]
     if robust_pass:
-        k = np.float32(outlier_sigmas)
         for _ in range(robust_passes):
-            with np.errstate(invalid="ignore", divide="ignore"):
-                zf = (h - f_c) / (k * sig_f[crop])
-                zx = (h[:, 1:] - h[:, :-1] - tx) * np.sqrt(wx) / k
-                zy = (h[1:, :] - h[:-1, :] - ty) * np.sqrt(wy) / k
-            robust = np.where(has_f, 1 / (1 + np.square(np.nan_to_num(zf))), 1)
-            rx = np.where(cut_x, 1 / (1 + np.square(np.nan_to_num(zx))), 1)
-            ry = np.where(cut_y, 1 / (1 + np.square(np.nan_to_num(zy))), 1)
-            sol = solve_screened_poisson(
-                sx,
-                sy,
-                (wx * rx).astype(np.float32),
-                (wy * ry).astype(np.float32),
-                data_um=f_c,
-                data_weight=(lam * robust).astype(np.float32),
-                x0_um=h,
-                rtol=rtol,
+            rwx, rwy, rlam = _cauchy_weights(
+                h,
+                f_c,
+                sig_f_c,
+                has_f,
+                lam,
+                wx,
+                wy,
+                tx,
+                ty,
+                cut_x,
+                cut_y,
+                k=np.float32(outlier_sigmas),
                 workers=workers,
+            )
+            sol = solve_screened_poisson(
+                sx, sy, rwx, rwy, data_um=f_c, data_weight=rlam, x0_um=h, rtol=rtol, workers=workers
             )
             h = sol.height_um
     h = _zero_mean_where_no_data(parts, h, m_c, has_f)
@@ -250,7 +252,7 @@ def fuse_default(
 
 
 def variance_factors(
-    h, f, lam, wx, wy, tx, ty, *, cut_x=None, cut_y=None, classes=8, leverages=None
+    h, f, lam, wx, wy, tx, ty, *, cut_x=None, cut_y=None, classes=8, leverages=None, workers=1
 ):
     """Variance factors of the slope and height terms, per class of predicted noise.
 
@@ -273,23 +275,41 @@ def variance_factors(
     terms as in `fuse_default`; leverages: `term_leverages(lam, wx, wy)` if computed
     already (they do not depend on h). Returns (fx, fy, ff): factors shaped like wx, wy, lam
     (1 where a class has fewer than 25 residuals); dividing the weights by them makes them
-    honest.
+    honest. workers > 1: the slope and the height factors are estimated in two threads.
     """
     has = lam > 0
     lev_p, lev_e = term_leverages(lam, wx, wy) if leverages is None else leverages
 
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uf = (h - f) * np.sqrt(lam / np.maximum(1 - lev_p, 1e-2))
-        ux = (h[:, 1:] - h[:, :-1] - tx) * np.sqrt(wx / (1 - lev_e))
-        uy = (h[1:, :] - h[:-1, :] - ty) * np.sqrt(wy / (1 - lev_e))
-    keep_x = wx > 0 if cut_x is None else (wx > 0) & ~cut_x
-    keep_y = wy > 0 if cut_y is None else (wy > 0) & ~cut_y
-    edge_factor = _class_factors(
-        np.concatenate([wx[keep_x], wy[keep_y]]), np.concatenate([ux[keep_x], uy[keep_y]]), classes
-    )
-    height_factor = _class_factors(lam[has], uf[has], classes)
-    ff = np.where(has, height_factor(lam), np.float32(1))
-    return edge_factor(wx), edge_factor(wy), ff
+    def edge_factors():
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ux = (h[:, 1:] - h[:, :-1] - tx) * np.sqrt(wx / (1 - lev_e))
+            uy = (h[1:, :] - h[:-1, :] - ty) * np.sqrt(wy / (1 - lev_e))
+        keep_x = wx > 0 if cut_x is None else (wx > 0) & ~cut_x
+        keep_y = wy > 0 if cut_y is None else (wy > 0) & ~cut_y
+        factor = _class_factors(
+            np.concatenate([wx[keep_x], wy[keep_y]]),
+            np.concatenate([ux[keep_x], uy[keep_y]]),
+            classes,
+        )
+        return factor(wx), factor(wy)
+
+    def height_factors():
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uf = (h - f) * np.sqrt(lam / np.maximum(1 - lev_p, 1e-2))
+        factor = _class_factors(lam[has], uf[has], classes)
+        return np.where(has, factor(lam), np.float32(1))
+
+    (fx, fy), ff = _side_by_side(edge_factors, height_factors, workers=workers)
+    return fx, fy, ff
+
+
+def _side_by_side(first, second, *, workers):
+    """(first(), second()): the two unlike jobs in two threads when workers > 1."""
+    if workers < 2:
+        return first(), second()
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        job = pool.submit(first)
+        return job.result(), second()
 
 
 def term_leverages(lam, wx, wy):
@@ -477,6 +497,42 @@ def _garrote(c, significance):
     c2 = np.square(c)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(c2 > floor, c * (1 - floor / c2), np.float32(0)).astype(np.float32)
+
+
+# Rows of `_cauchy_weights`' blocks hold about this many pixels (their dozen arrays stay in
+# the core's cache).
+_ROBUST_BLOCK_PX = 65_536
+
+
+def _cauchy_weights(h, f, sig_f, has_f, lam, wx, wy, tx, ty, cut_x, cut_y, *, k, workers=1):
+    """The robust pass's weights (wx·ρx, wy·ρy, λ·ρf), ρ = 1/(1 + (r/(k·σ))²) the Cauchy
+    weight of each term's residual r under the solved h (`fuse_default`): fringe heights
+    where has_f, edges only where cut_x / cut_y allow (ρ = 1 elsewhere, and where r/σ is
+    NaN). Elementwise, in blocks of rows shared out between `workers` threads.
+    """
+    rows, cols = h.shape
+    out_x, out_y, out_f = np.empty_like(wx), np.empty_like(wy), np.empty_like(lam)
+    step = max(1, _ROBUST_BLOCK_PX // cols)
+
+    def cauchy(z):
+        return 1 / (1 + np.square(np.nan_to_num(z)))
+
+    def block(r0):
+        r1 = min(r0 + step, rows)
+        hb = h[r0:r1]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            zf = (hb - f[r0:r1]) / (k * sig_f[r0:r1])
+            zx = (hb[:, 1:] - hb[:, :-1] - tx[r0:r1]) * np.sqrt(wx[r0:r1]) / k
+        np.multiply(lam[r0:r1], np.where(has_f[r0:r1], cauchy(zf), 1), out=out_f[r0:r1])
+        np.multiply(wx[r0:r1], np.where(cut_x[r0:r1], cauchy(zx), 1), out=out_x[r0:r1])
+        e1 = min(r1, rows - 1)  # y-edge e joins rows e and e + 1
+        if r0 < e1:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                zy = (h[r0 + 1 : e1 + 1] - h[r0:e1] - ty[r0:e1]) * np.sqrt(wy[r0:e1]) / k
+            np.multiply(wy[r0:e1], np.where(cut_y[r0:e1], cauchy(zy), 1), out=out_y[r0:e1])
+
+    run_blocks(block, range(0, rows, step), workers=workers)
+    return out_x, out_y, out_f
 
 
 def _bent_edges(gx, gy, step_sigma, s, *, k):

@@ -375,6 +375,49 @@ def test_variance_classes_separate_edges_whose_noise_was_ranked_wrongly():
     )
     for a, b in zip(given, (fx, fy, ff), strict=True):
         np.testing.assert_array_equal(a, b)
+    # The slope and height factors estimated in two threads: the same factors.
+    threaded = variance_factors(sol.height_um, f, lam, wx, wy, tx, ty, classes=2, workers=2)
+    for a, b in zip(threaded, (fx, fy, ff), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_cauchy_weights_in_row_blocks_are_the_whole_frame_formula(monkeypatch):
+    # Elementwise in blocks of rows (threads or not): bit for bit the whole-frame weights,
+    # including the y-edges on the blocks' borders, NaN residuals (ρ = 1) and edges that may
+    # not be cut.
+    from worker.recon import fusion
+
+    rng = np.random.default_rng(3)
+    shape = (23, 17)
+    h = rng.normal(0, 5, shape).astype(np.float32)
+    f = (h + rng.normal(0, 1, shape)).astype(np.float32)
+    f[rng.random(shape) < 0.1] = np.nan
+    sig_f = rng.uniform(0.5, 2, shape).astype(np.float32)
+    has_f = np.isfinite(f)
+    lam = np.where(has_f, 1 / np.square(sig_f), 0).astype(np.float32)
+    wx = rng.uniform(0, 3, (shape[0], shape[1] - 1)).astype(np.float32)
+    wy = rng.uniform(0, 3, (shape[0] - 1, shape[1])).astype(np.float32)
+    tx = rng.normal(0, 5, wx.shape).astype(np.float32)
+    ty = rng.normal(0, 5, wy.shape).astype(np.float32)
+    tx[0, 0] = np.nan
+    cut_x, cut_y = rng.random(wx.shape) < 0.7, rng.random(wy.shape) < 0.7
+    k = np.float32(4.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        zf = (h - f) / (k * sig_f)
+        zx = (h[:, 1:] - h[:, :-1] - tx) * np.sqrt(wx) / k
+        zy = (h[1:, :] - h[:-1, :] - ty) * np.sqrt(wy) / k
+    rho_f = np.where(has_f, 1 / (1 + np.square(np.nan_to_num(zf))), 1)
+    rho_x = np.where(cut_x, 1 / (1 + np.square(np.nan_to_num(zx))), 1)
+    rho_y = np.where(cut_y, 1 / (1 + np.square(np.nan_to_num(zy))), 1)
+    expected = (wx * rho_x, wy * rho_y, lam * rho_f)
+    for block_px, workers in ((10_000, 1), (3 * shape[1], 1), (2 * shape[1], 2), (1, 2)):
+        monkeypatch.setattr(fusion, "_ROBUST_BLOCK_PX", block_px)
+        got = fusion._cauchy_weights(
+            h, f, sig_f, has_f, lam, wx, wy, tx, ty, cut_x, cut_y, k=k, workers=workers
+        )
+        for a, b in zip(got, expected, strict=True):
+            assert a.dtype == np.float32
+            np.testing.assert_array_equal(a, b)
 
 
 def test_variance_components_help_when_the_normals_are_worse_than_claimed():
