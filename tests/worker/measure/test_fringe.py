@@ -83,3 +83,19 @@ def test_on_queued_is_called_once_whatever_the_number_of_groups(tmp_path):
         measure_fringes(bundle, fringe, plain, 0.95, lambda s, f: None)
     assert len(calls) == 2
     np.testing.assert_array_equal(results[0], plain.fringe_height_um)
+
+
+@pytest.mark.parametrize("shape", [(8, 8), (9, 11), (40, 41), (3, 3), (1, 1)])
+def test_central_median_is_np_median_of_the_finite_central_values(shape):
+    # Taken by a partition of its own copy: np.median's value, odd and even counts alike.
+    from worker.measure.fringe import _central_median
+
+    rng = np.random.default_rng(shape[0] * 100 + shape[1])
+    for _ in range(20):
+        a = np.round(rng.standard_normal(shape), 1).astype(np.float32)  # ties
+        a[rng.random(shape) < 0.3] = np.nan
+        rows, cols = shape
+        m = a[rows // 4 : rows - rows // 4, cols // 4 : cols - cols // 4]
+        m = m[np.isfinite(m)]
+        expected = float(np.median(m)) if m.size else float("nan")
+        np.testing.assert_equal(_central_median(a), expected)

@@ -259,6 +259,8 @@ def test_four_step_in_blocks_of_rows_gives_the_whole_frame_formulas():
     rows = 2 * (_BLOCK_PIXELS // cols) + 5
     frames = rng.uniform(0.0, 1.0, (4, rows, cols)).astype(np.float32)
     frames[:, -1, :3] = 0.0  # A = 0 in the last, partial block: modulation NaN
+    frames[:, 0, :3] -= 2.0  # A < 0 (dark-subtracted noise): NaN as well
+    frames[1, 0, 3] = np.nan  # NaN frames: NaN
     res = four_step_phase(frames)
     i0, i90, i180, i270 = frames
     s, c = i270 - i90, i0 - i180
@@ -270,7 +272,10 @@ def test_four_step_in_blocks_of_rows_gives_the_whole_frame_formulas():
     np.testing.assert_array_equal(res.residual, ((i0 + i180) - (i90 + i270)) * np.float32(0.5))
     with np.errstate(divide="ignore", invalid="ignore"):
         np.testing.assert_array_equal(res.modulation, np.where(mean > 0, amp / mean, np.nan))
-    assert np.isnan(res.modulation[-1, :3]).all()
+    assert np.isnan(res.modulation[-1, :3]).all() and np.isnan(res.modulation[0, :4]).all()
+    # Written into a previous result's modulation, blocks and all: the same bits.
+    again = four_step_phase(frames, out=FringePhase(None, np.zeros_like(res.modulation), None))
+    np.testing.assert_array_equal(again.modulation.view(np.int32), res.modulation.view(np.int32))
 
 
 def test_four_step_writes_into_the_arrays_of_out():
@@ -287,6 +292,8 @@ def test_four_step_writes_into_the_arrays_of_out():
         np.testing.assert_array_equal(getattr(out, field), getattr(fresh, field))
     with pytest.raises(ValueError, match="out.mean"):
         four_step_phase(frames, out=FringePhase(None, None, None, np.empty((40, 31), np.float32)))
+    with pytest.raises(ValueError, match="out.modulation must be C-contiguous"):
+        four_step_phase(frames, out=FringePhase(None, np.empty((30, 40), np.float32).T, None))
 
 
 @pytest.mark.parametrize("harmonic", [(0.0, 0.0), (0.02, -0.01)])
