@@ -177,26 +177,80 @@ def solve_screened_poisson(
         raise ValueError(f"ty and wy must have shape {(rows - 1, cols)}")
     if np.any(wx < 0) or np.any(wy < 0):
         raise ValueError("wx and wy must be non-negative")
-    # The DCT is several times faster on lengths with small prime factors: pad the grid with
-    # unconstrained pixels (a separate block of the system, see below) and crop at the end.
-    fast = (fft.next_fast_len(rows, real=True), fft.next_fast_len(cols, real=True))
-    if fast != (rows, cols):
-        return _solve_padded(
-            tx, ty, wx, wy, data_um, data_weight, x0_um, rtol, max_iter, fast, workers
-        )
-    tx = _finite_f32(tx, wx > 0)
-    ty = _finite_f32(ty, wy > 0)
-    if data_weight is None:
-        lam = np.zeros((rows, cols), np.float32)
-        data = np.zeros((rows, cols), np.float32)
-    else:
-        lam = np.asarray(data_weight, np.float32)
-        if lam.shape != (rows, cols) or data_um is None or np.shape(data_um) != (rows, cols):
+    if data_weight is not None:
+        lam_in = np.asarray(data_weight, np.float32)
+        if lam_in.shape != (rows, cols) or data_um is None or np.shape(data_um) != (rows, cols):
             raise ValueError(f"data_um and data_weight must have shape {(rows, cols)}")
-        if np.any(lam < 0):
+        if np.any(lam_in < 0):
             raise ValueError("data_weight must be non-negative")
-        data = _finite_f32(data_um, lam > 0)
+    else:
+        lam_in = None
+    tx, ty, wx, wy, lam, data, h = _solver_inputs(
+        np.asarray(tx),
+        np.asarray(ty),
+        wx,
+        wy,
+        None if lam_in is None else np.asarray(data_um),
+        lam_in,
+        None if x0_um is None else np.asarray(x0_um),
+        workers=workers,
+    )
+    h, it, res = _solve_prepared(tx, ty, wx, wy, lam, data, h, rtol, max_iter, workers)
+    if h.shape != (rows, cols):
+        h = h[:rows, :cols].copy()
+    return ScreenedPoisson(height_um=h, iterations=it, relative_residual=res)
 
+
+# Rows of `_solver_inputs`' blocks hold about this many pixels (seven arrays in, seven out).
+_PREPARE_BLOCK_PX = 65_536
+
+
+def _solver_inputs(tx, ty, wx, wy, data_um, data_weight, x0_um, *, workers=1):
+    """The solver's own float32 copies of its inputs, on the grid padded to lengths the
+    DCT is fast on (the pad: unconstrained pixels, 0 everywhere, a separate block of the
+    system; cropped off at the end). Targets, data and start heights are cleaned by
+    `_clean_into` (0 where their weight is 0). Filled in blocks of rows shared out between
+    `workers` threads, elementwise: the values of whole-frame passes.
+    Returns (tx, ty, wx, wy, lam, data, h0).
+    """
+    rows, cols = wy.shape[0] + 1, wx.shape[1] + 1
+    fast_rows, fast_cols = fft.next_fast_len(rows, real=True), fft.next_fast_len(cols, real=True)
+    lam_p, data_p, h_p = (np.zeros((fast_rows, fast_cols), np.float32) for _ in range(3))
+    wx_p, tx_p = (np.zeros((fast_rows, fast_cols - 1), np.float32) for _ in range(2))
+    wy_p, ty_p = (np.zeros((fast_rows - 1, fast_cols), np.float32) for _ in range(2))
+    step = max(1, _PREPARE_BLOCK_PX // cols)
+
+    def block(r0):
+        r1 = min(r0 + step, rows)
+        rb = slice(r0, r1)
+        wx_p[rb, : cols - 1] = wx[rb]
+        _clean_into(tx_p[rb, : cols - 1], tx[rb], wx[rb] > 0)
+        yb = slice(r0, min(r1, rows - 1))  # y-edge e joins rows e and e + 1
+        wy_p[yb, :cols] = wy[yb]
+        _clean_into(ty_p[yb, :cols], ty[yb], wy[yb] > 0)
+        if data_weight is not None:
+            lam_p[rb, :cols] = data_weight[rb]
+            _clean_into(data_p[rb, :cols], data_um[rb], lam_p[rb, :cols] > 0)
+        if x0_um is not None:
+            _clean_into(h_p[rb, :cols], x0_um[rb])
+
+    run_blocks(block, range(0, rows, step), workers=workers)
+    return tx_p, ty_p, wx_p, wy_p, lam_p, data_p, h_p
+
+
+def _clean_into(out, values, keep=None):
+    """values copied into the float32 `out` where keep (out keeps its 0 elsewhere), then
+    np.nan_to_num'ed in place (NaN → 0, ±inf → ±the largest float32); its passes only when a
+    value is not finite."""
+    np.copyto(out, np.asarray(values), where=True if keep is None else keep)
+    if not np.isfinite(out).all():
+        np.nan_to_num(out, copy=False)
+
+
+def _solve_prepared(tx, ty, wx, wy, lam, data, h, rtol, max_iter, workers):
+    """`solve_screened_poisson` on the inputs of `_solver_inputs` (which it modifies):
+    (heights, iterations, relative residual)."""
+    rows, cols = h.shape
     deg = lam.copy()
     deg[:, 1:] += wx
     deg[:, :-1] += wx
@@ -214,9 +268,9 @@ def solve_screened_poisson(
     # them the preconditioner's own operator (membrane w̄ to each other, screening λ̄ towards 0)
     # keeps A close to w̄·L + λ̄·I so that CG converges in a few iterations.
     if free.any():
-        wx = np.where(free[:, 1:] & free[:, :-1], np.float32(w_bar), wx)
-        wy = np.where(free[1:, :] & free[:-1, :], np.float32(w_bar), wy)
-        lam = np.where(free, np.float32(lam_bar if lam_bar > 0 else w_bar * 1e-3), lam)
+        np.copyto(wx, np.float32(w_bar), where=free[:, 1:] & free[:, :-1])
+        np.copyto(wy, np.float32(w_bar), where=free[1:, :] & free[:-1, :])
+        np.copyto(lam, np.float32(lam_bar if lam_bar > 0 else w_bar * 1e-3), where=free)
     dct_solve = _dct_preconditioner((rows, cols), w_bar, lam_bar, workers)
     # Symmetric diagonal scaling around the DCT solve, S·P·S with S = √(d̄/d) (d the diagonal
     # of A, d̄ the constant operator's): where walls are down-weighted or fringe heights
@@ -242,7 +296,6 @@ def solve_screened_poisson(
             return z
 
     b = _rhs(tx, ty, wx, wy, lam, data)
-    h = np.zeros((rows, cols), np.float32) if x0_um is None else _finite_f32(x0_um)
     r = b - _apply(h, wx, wy, lam, workers)
     b_norm = float(np.linalg.norm(b)) or 1.0
     z = precond(r)
@@ -269,47 +322,7 @@ def solve_screened_poisson(
         it += 1
         res = float(np.linalg.norm(r)) / b_norm
     h[free] = 0
-    return ScreenedPoisson(height_um=h, iterations=it, relative_residual=res)
-
-
-def _finite_f32(values, keep=None):
-    """np.nan_to_num(values) as a new float32 array, 0 where `keep` is False; nan_to_num's
-    passes (and copy) only when a value is not finite."""
-    if keep is None:
-        out = np.array(values, np.float32)
-    else:
-        out = np.where(keep, np.asarray(values, np.float32), np.float32(0))
-    if not np.isfinite(out).all():
-        np.nan_to_num(out, copy=False)
-    return out
-
-
-def _solve_padded(tx, ty, wx, wy, data_um, data_weight, x0_um, rtol, max_iter, fast, workers):
-    rows, cols = wy.shape[0] + 1, wx.shape[1] + 1
-    pr, pc = fast[0] - rows, fast[1] - cols
-
-    def pad(a, fill=0.0):
-        return (
-            None
-            if a is None
-            else np.pad(np.asarray(a, np.float32), ((0, pr), (0, pc)), constant_values=fill)
-        )
-
-    sol = solve_screened_poisson(
-        pad(tx),
-        pad(ty),
-        pad(wx),
-        pad(wy),
-        data_um=pad(data_um),
-        data_weight=pad(data_weight),
-        x0_um=pad(x0_um),
-        rtol=rtol,
-        max_iter=max_iter,
-        workers=workers,
-    )
-    return ScreenedPoisson(
-        sol.height_um[:rows, :cols].copy(), sol.iterations, sol.relative_residual
-    )
+    return h, it, res
 
 
 def _label_stats(values, labels, count):

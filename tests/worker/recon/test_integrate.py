@@ -127,15 +127,66 @@ def test_operator_in_row_blocks_is_the_whole_frame_formula(monkeypatch, workers,
 
 def test_solver_inputs_are_cleaned_like_nan_to_num():
     # Targets, data and start heights: NaN → 0 and ±inf → the largest float32 where kept,
-    # 0 where their weight is 0; finite inputs pass unchanged (and are copied).
-    from worker.recon.integrate import _finite_f32
+    # 0 where their weight is 0; finite inputs pass unchanged.
+    from worker.recon.integrate import _clean_into
 
     values = np.array([[1.5, np.nan, np.inf], [-np.inf, 2.0, np.nan]], np.float64)
     keep = np.array([[True, True, True], [True, False, False]])
     expected = np.where(keep, np.nan_to_num(values.astype(np.float32)), np.float32(0))
-    np.testing.assert_array_equal(_finite_f32(values, keep), expected)
-    np.testing.assert_array_equal(_finite_f32(values), np.nan_to_num(values.astype(np.float32)))
+    out = np.zeros((2, 3), np.float32)
+    _clean_into(out, values, keep)
+    np.testing.assert_array_equal(out, expected)
+    _clean_into(out, values)
+    np.testing.assert_array_equal(out, np.nan_to_num(values.astype(np.float32)))
     finite = np.arange(6, dtype=np.float32).reshape(2, 3)
-    out = _finite_f32(finite)
-    assert out.dtype == np.float32 and out is not finite
+    _clean_into(out, finite)
     np.testing.assert_array_equal(out, finite)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+@pytest.mark.parametrize("block_px", [1, 20, 10_000])
+def test_solver_inputs_in_row_blocks_are_the_padded_cleaned_inputs(monkeypatch, workers, block_px):
+    # Every input once into the solver's copy on the DCT-friendly grid: the pad is 0, the
+    # rows of every block (and the y-edges on their borders) cleaned as whole frames would be.
+    from scipy import fft
+
+    from worker.recon import integrate
+
+    rng = np.random.default_rng(4)
+    rows, cols = 23, 17  # padded to 24 × 18
+    tx = rng.normal(size=(rows, cols - 1))
+    ty = rng.normal(size=(rows - 1, cols))
+    wx = rng.random((rows, cols - 1)).astype(np.float32) * (rng.random((rows, cols - 1)) < 0.8)
+    wy = rng.random((rows - 1, cols)).astype(np.float32) * (rng.random((rows - 1, cols)) < 0.8)
+    data = rng.normal(size=(rows, cols))
+    lam = rng.random((rows, cols)).astype(np.float32) * (rng.random((rows, cols)) < 0.8)
+    x0 = rng.normal(size=(rows, cols))
+    for a in (tx, ty, data, x0):
+        a[rng.random(a.shape) < 0.1] = np.nan
+    tx[0, 0], ty[-1, -1] = np.inf, -np.inf
+    fast = (fft.next_fast_len(rows, real=True), fft.next_fast_len(cols, real=True))
+    assert fast != (rows, cols)
+
+    def padded(a, keep=None):
+        a = np.nan_to_num(a.astype(np.float32))
+        if keep is not None:
+            a = np.where(keep, a, np.float32(0))
+        return np.pad(a, ((0, fast[0] - rows), (0, fast[1] - cols)))
+
+    expected = (
+        padded(tx, wx > 0),
+        padded(ty, wy > 0),
+        padded(wx),
+        padded(wy),
+        padded(lam),
+        padded(data, lam > 0),
+        padded(x0),
+    )
+    monkeypatch.setattr(integrate, "_PREPARE_BLOCK_PX", block_px)
+    got = integrate._solver_inputs(tx, ty, wx, wy, data, lam, x0, workers=workers)
+    for a, b in zip(got, expected, strict=True):
+        assert a.dtype == np.float32
+        np.testing.assert_array_equal(a, b)
+    none = integrate._solver_inputs(tx, ty, wx, wy, None, None, None, workers=workers)
+    for a in none[4:]:
+        np.testing.assert_array_equal(a, np.zeros(fast, np.float32))
