@@ -286,17 +286,13 @@ def variance_factors(
             uy = (h[1:, :] - h[:-1, :] - ty) * np.sqrt(wy / (1 - lev_e))
         keep_x = wx > 0 if cut_x is None else (wx > 0) & ~cut_x
         keep_y = wy > 0 if cut_y is None else (wy > 0) & ~cut_y
-        factor = _class_factors(
-            np.concatenate([wx[keep_x], wy[keep_y]]),
-            np.concatenate([ux[keep_x], uy[keep_y]]),
-            classes,
-        )
+        factor = _class_factors(*_residual_sample((wx, ux, keep_x), (wy, uy, keep_y)), classes)
         return factor(wx), factor(wy)
 
     def height_factors():
         with np.errstate(divide="ignore", invalid="ignore"):
             uf = (h - f) * np.sqrt(lam / np.maximum(1 - lev_p, 1e-2))
-        factor = _class_factors(lam[has], uf[has], classes)
+        factor = _class_factors(*_residual_sample((lam, uf, has)), classes)
         return np.where(has, factor(lam), np.float32(1))
 
     (fx, fy), ff = _side_by_side(edge_factors, height_factors, workers=workers)
@@ -330,12 +326,29 @@ def term_leverages(lam, wx, wy):
     return lev_p, lev_e
 
 
+def _residual_sample(*groups, size=100_000):
+    """(weights, residuals) of every step-th term with a finite residual, step such that
+    about `size` remain (100k residuals fix a class's MAD to ~1 %).
+
+    groups: (weights, residuals, keep) arrays, the terms taken where keep, group after
+    group in C order: the values of concatenating w[keep & finite u] over the groups, then
+    [::step], picked by index instead of copying every kept term.
+    """
+    picks = [np.flatnonzero(keep & np.isfinite(u)) for _, u, keep in groups]
+    step = max(1, sum(p.size for p in picks) // size)
+    weights, residuals = [], []
+    before = 0  # terms of the earlier groups: the sample's phase in this one
+    for (w, u, _), p in zip(groups, picks, strict=True):
+        chosen = p[-before % step :: step]
+        weights.append(np.ravel(w).take(chosen))
+        residuals.append(np.ravel(u).take(chosen))
+        before += p.size
+    return np.concatenate(weights), np.concatenate(residuals)
+
+
 def _class_factors(weights, u, classes, max_factor=1e4):
-    """A function weight → (normalised MAD of u)² of that weight's quantile class."""
-    ok = np.isfinite(u)
-    weights, u = weights[ok], u[ok]
-    step = max(1, u.size // 100_000)  # 100k residuals fix a class's MAD to ~1 %
-    weights, u = weights[::step], u[::step]
+    """A function weight → (normalised MAD of u)² of that weight's quantile class;
+    weights, u: a sample of finite residuals (`_residual_sample`)."""
     classes = max(1, min(classes, u.size // 25))
     if u.size < 25:
         return lambda w: np.ones(np.shape(w), np.float32)

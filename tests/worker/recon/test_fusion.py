@@ -381,6 +381,29 @@ def test_variance_classes_separate_edges_whose_noise_was_ranked_wrongly():
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("size", [7, 100, 10_000])
+def test_residual_sample_is_the_concatenation_strided(size):
+    # Every step-th finite residual of the kept terms, group after group: the same values
+    # as concatenating the groups' kept, finite terms and striding, for any phase.
+    from worker.recon.fusion import _residual_sample
+
+    rng = np.random.default_rng(8)
+    groups = []
+    for shape in ((13, 11), (12, 12), (5, 3)):
+        w = rng.random(shape).astype(np.float32)
+        u = rng.normal(size=shape).astype(np.float32)
+        u[rng.random(shape) < 0.1] = np.nan
+        groups.append((w, u, rng.random(shape) < 0.8))
+    groups[1] = (groups[1][0].T, groups[1][1].T, groups[1][2].T)  # not C-contiguous
+    weights = np.concatenate([w[keep] for w, _, keep in groups])
+    u = np.concatenate([u[keep] for _, u, keep in groups])
+    ok = np.isfinite(u)
+    step = max(1, int(ok.sum()) // size)
+    got_w, got_u = _residual_sample(*groups, size=size)
+    np.testing.assert_array_equal(got_w, weights[ok][::step])
+    np.testing.assert_array_equal(got_u, u[ok][::step])
+
+
 def test_cauchy_weights_in_row_blocks_are_the_whole_frame_formula(monkeypatch):
     # Elementwise in blocks of rows (threads or not): bit for bit the whole-frame weights,
     # including the y-edges on the blocks' borders, NaN residuals (ρ = 1) and edges that may
