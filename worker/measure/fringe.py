@@ -129,7 +129,9 @@ def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_
                 )
             periods = np.array([p for p, _, _ in levels])
             wrapped_az = wrapped.pop(key)
-            un = noise_aware_unwrap(wrapped_az, noise.pop(key), periods, workers=workers)
+            un = noise_aware_unwrap(
+                wrapped_az, noise.pop(key), periods, workers=workers, diagnostics=False
+            )
             h = height_from_phase(un.dpsi_rad, period_um=float(periods[-1]), polar_deg=key[1])
             sigma_h = np.abs(
                 height_from_phase(un.sigma_rad, period_um=float(periods[-1]), polar_deg=key[1])

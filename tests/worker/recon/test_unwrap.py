@@ -311,6 +311,30 @@ def test_noise_aware_unwrap_in_threads_gives_the_same_result():
         np.testing.assert_array_equal(getattr(two, field), getattr(one, field))
 
 
+def test_noise_aware_unwrap_without_diagnostics_leaves_only_them_out():
+    # order_residual and weight are skipped, every other output keeps its bits (NaN, ∞
+    # and zero σ, NaN phases and undetected levels included).
+    rng = np.random.default_rng(22)
+    periods = np.array([64.0, 32.0, 16.0, 8.0])
+    truth = rng.uniform(-np.pi, np.pi, (90, 40)) * 0.9
+    scaled = truth[None] * (periods[0] / periods)[:, None, None]
+    sigma = rng.uniform(0.0, 0.8, scaled.shape).astype(np.float32)
+    wrapped = wrap_phase((scaled + rng.normal(0, 1, scaled.shape) * sigma).astype(np.float32))
+    wrapped[0, 30:35] = np.nan
+    sigma[:, :5, :5] = 0.0
+    sigma[1, 10:20] = np.inf
+    sigma[2, 20:30] = np.nan
+    full = noise_aware_unwrap(wrapped, sigma, periods)
+    bare = noise_aware_unwrap(wrapped, sigma, periods, workers=2, diagnostics=False)
+    assert bare.order_residual is None and bare.weight is None
+    assert np.isnan(full.dpsi_rad).any() and np.isfinite(full.dpsi_rad).any()
+    for field in ("dpsi_rad", "level_used", "sigma_rad", "conflicts"):
+        np.testing.assert_array_equal(getattr(bare, field), getattr(full, field))
+    finite = np.isfinite(full.dpsi_rad)
+    assert np.isnan(full.sigma_rad[~finite]).all() and (full.weight[~finite] == 0).all()
+    np.testing.assert_allclose(full.weight[finite], full.sigma_rad[finite] ** -2.0, rtol=1e-6)
+
+
 @pytest.mark.parametrize(
     ("shape", "dtype"), [((3, 5, 7), np.float32), ((4, 9), np.int16), ((1, 1), np.float32)]
 )
