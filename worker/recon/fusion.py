@@ -680,6 +680,8 @@ def _zero_mean_where_no_data(parts, h, mask, has_data):
     if count == 0:
         return h
     data_count = np.bincount(labels.ravel(), weights=has_data.ravel(), minlength=count + 1)
+    if np.all(data_count[1:] > 0):
+        return h  # every part has data: nothing to shift (h − 0 is h, bit for bit)
     sums, counts = _label_stats(np.where(mask, h, 0), labels, count)
     offset = np.where(data_count > 0, 0.0, sums / np.maximum(counts, 1)).astype(np.float32)
     offset[0] = 0
@@ -761,6 +763,19 @@ def sharpen_heights(
     valid = m & np.isfinite(h)
     if blur_sigma_px == 0 or valid.sum() < 25:
         return h.copy()
+    # Only the valid pixels' bounding box changes; its inner pixels in C order are the
+    # whole frame's, so the noise estimate is the same.
+    r0, r1, c0, c1 = _bbox(valid)
+    box = (slice(r0, r1), slice(c0, c1))
+    result = h.copy()
+    result[box] = _sharpened(
+        h[box], valid[box], blur_sigma_px, pixel_size_um, max_slope, significance
+    )
+    return result
+
+
+def _sharpened(h, valid, blur_sigma_px, pixel_size_um, max_slope, significance):
+    """`sharpen_heights` on a box holding every valid pixel."""
     f = np.where(valid, h, 0).astype(np.float32)
     inner = np.zeros_like(valid)
     inner[1:-1, 1:-1] = (
@@ -771,7 +786,7 @@ def sharpen_heights(
     lap = np.where(inner, lap, np.float32(0))
     sample = lap[inner][::3]  # a third of the values fixes the MAD to < 1 %
     if sample.size < 25:
-        return h.copy()
+        return h
     noise = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))
     floor = np.float32(np.square(significance * noise))
     lap2 = np.square(lap)

@@ -261,6 +261,25 @@ def test_sharpening_restores_a_blurred_groove_and_leaves_noise_alone():
     assert _rms(kept - flat) < 0.1
 
 
+def test_sharpening_depends_on_the_valid_pixels_only():
+    # Heights on a ragged mask (holes, NaN, a border of invalid frame around it): the same
+    # bits whatever the invalid frame around them (the correction works on their bounding
+    # box), and the pixels off the mask are returned as they were.
+    from worker.recon.fusion import sharpen_heights
+
+    rng = np.random.default_rng(9)
+    h = (_groove() + rng.normal(0, 0.3, _groove().shape)).astype(np.float32)
+    mask = rng.random(h.shape) < 0.95
+    h[rng.random(h.shape) < 0.02] = np.nan
+    got = sharpen_heights(h, mask, blur_sigma_px=0.6, pixel_size_um=S_UM)
+    framed_h = np.pad(h, ((3, 5), (7, 2)), constant_values=7.0)
+    framed_m = np.pad(mask, ((3, 5), (7, 2)))
+    framed = sharpen_heights(framed_h, framed_m, blur_sigma_px=0.6, pixel_size_um=S_UM)
+    np.testing.assert_array_equal(framed[3:-5, 7:-2], got)
+    np.testing.assert_array_equal(framed[~framed_m], framed_h[~framed_m])
+    assert not np.array_equal(got[mask], h[mask])  # the groove's bends are corrected
+
+
 def test_cell_average_targets_are_exact_for_a_cubic():
     # H(x) = pixel mean of h = a·x³: its slope at pixel centres is what a normal gives; the
     # four-point rule is exact for cubic H, the trapezoid rule errs by s³·H'''/12.
