@@ -24,6 +24,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from worker.recon.parallel import run_blocks
+from worker.recon.unwrap import _copy_where
 
 __all__ = [
     "CombinedHeight",
@@ -235,31 +236,52 @@ _CONSENSUS_BLOCK = 1 << 16
 
 def _consensus_block(hf, sf, valid, k2):
     """:func:`consensus_azimuths` on (A, n) pixels; returns mean, spread, used, sigma (n,)."""
-    a = hf.shape[0]
+    a, n_pix = hf.shape
     hv = np.where(valid, hf, np.float32(0))
     sf2 = np.square(sf)  # once, not per candidate centre
     wv = np.where(valid, np.float32(1) / sf2, np.float32(0))
-    best_n = np.zeros(hf.shape[1], dtype=np.int16)
-    best_w = np.zeros(hf.shape[1], dtype=np.float32)
-    best = np.full(hf.shape[1], -1, dtype=np.int16)
-    for c in range(a):
-        with np.errstate(invalid="ignore", over="ignore"):
-            agree = np.square(hv - hv[c]) <= k2 * (sf2 + sf2[c])
-        agree &= valid & valid[c]
-        n = agree.sum(axis=0, dtype=np.int16)
-        wsum = (wv * agree).sum(axis=0)
-        better = (n > best_n) | ((n == best_n) & (wsum > best_w))
-        best_n = np.where(better, n, best_n)
-        best_w = np.where(better, wsum, best_w)
-        best = np.where(better, np.int16(c), best)
-    centre = np.take_along_axis(hv, np.clip(best, 0, None)[None].astype(np.intp), axis=0)
-    sc2 = np.take_along_axis(sf2, np.clip(best, 0, None)[None].astype(np.intp), axis=0)
+    # agree[c][d]: azimuths c and d agree.  The test is symmetric to the bit (the same
+    # square of ±(h_d − h_c), the same sum σ_c² + σ_d²), so each pair is tested once, and
+    # an azimuth agrees with itself where it is valid (0 ≤ k²·2σ², σ² ≥ 0 or ∞).
+    agree = [[valid[c] if c == d else None for d in range(a)] for c in range(a)]
     with np.errstate(invalid="ignore", over="ignore"):
-        inl = valid & (np.square(hv - centre) <= k2 * (sf2 + sc2))
-    n_valid = valid.sum(axis=0)
+        for c in range(a):
+            for d in range(c + 1, a):
+                diff2 = np.subtract(hv[d], hv[c])
+                np.square(diff2, out=diff2)
+                limit = np.add(sf2[d], sf2[c])
+                limit *= k2
+                pair = np.less_equal(diff2, limit)
+                pair &= valid[c]
+                pair &= valid[d]
+                agree[c][d] = agree[d][c] = pair
+    best_n = np.zeros(n_pix, dtype=np.int16)
+    best_w = np.zeros(n_pix, dtype=np.float32)
+    best = np.full(n_pix, -1, dtype=np.int16)
+    for c in range(a):
+        n = np.zeros(n_pix, dtype=np.int16)
+        for d in range(a):
+            n += agree[c][d]
+        # Σ_d wv_d·agree_cd in the order of the (A, n) sum over axis 0, so the same bits.
+        wsum = wv[0] * agree[c][0]
+        for d in range(1, a):
+            wsum += wv[d] * agree[c][d]
+        better = (n > best_n) | ((n == best_n) & (wsum > best_w))
+        _copy_where(best_n, n, better)
+        _copy_where(best_w, wsum, better)
+        _copy_where(best, np.full_like(best, c), better)
+    n_valid = valid.view(np.uint8).sum(axis=0, dtype=np.uint8)  # A < 256
     solved = (best >= 0) & ((best_n >= 2) | (n_valid == 1))
+    # The inliers are the azimuths that agree with the chosen centre (a valid azimuth:
+    # one that agrees with none never wins), picked row by row.
+    inl = np.zeros((a, n_pix), dtype=bool)
+    for c in range(a):
+        chosen = best == c
+        for d in range(a):
+            _copy_where(inl[d], agree[c][d], chosen)
     inl &= solved[None]
-    wi = np.where(inl, wv, np.float32(0))
+    wi = np.zeros_like(wv)
+    _copy_where(wi, wv, inl)
     wsum = wi.sum(axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):
         mean = (wi * hv).sum(axis=0) / wsum

@@ -203,3 +203,66 @@ def test_consensus_in_blocks_and_threads_gives_the_same_result(monkeypatch):
     blocks = consensus_azimuths(h, s, workers=2)
     for field in ("height_um", "spread_um", "azimuths_used", "sigma_um"):
         np.testing.assert_array_equal(getattr(blocks, field), getattr(whole, field))
+
+
+def _consensus_block_plain(hf, sf, valid, k2):
+    # Every candidate centre against every azimuth, np.where and take_along_axis: the
+    # formulas _consensus_block must reproduce bit for bit.
+    hv = np.where(valid, hf, np.float32(0))
+    sf2 = np.square(sf)
+    wv = np.where(valid, np.float32(1) / sf2, np.float32(0))
+    best_n = np.zeros(hf.shape[1], dtype=np.int16)
+    best_w = np.zeros(hf.shape[1], dtype=np.float32)
+    best = np.full(hf.shape[1], -1, dtype=np.int16)
+    for c in range(hf.shape[0]):
+        with np.errstate(invalid="ignore", over="ignore"):
+            agree = np.square(hv - hv[c]) <= k2 * (sf2 + sf2[c])
+        agree &= valid & valid[c]
+        n = agree.sum(axis=0, dtype=np.int16)
+        wsum = (wv * agree).sum(axis=0)
+        better = (n > best_n) | ((n == best_n) & (wsum > best_w))
+        best_n = np.where(better, n, best_n)
+        best_w = np.where(better, wsum, best_w)
+        best = np.where(better, np.int16(c), best)
+    index = np.clip(best, 0, None)[None].astype(np.intp)
+    centre = np.take_along_axis(hv, index, axis=0)
+    sc2 = np.take_along_axis(sf2, index, axis=0)
+    with np.errstate(invalid="ignore", over="ignore"):
+        inl = valid & (np.square(hv - centre) <= k2 * (sf2 + sc2))
+    solved = (best >= 0) & ((best_n >= 2) | (valid.sum(axis=0) == 1))
+    inl &= solved[None]
+    wi = np.where(inl, wv, np.float32(0))
+    wsum = wi.sum(axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean = (wi * hv).sum(axis=0) / wsum
+        var = (wi * np.square(hv - mean[None])).sum(axis=0) / wsum
+        sigma = np.where(solved, np.float32(1) / np.sqrt(wsum), np.float32(np.nan))
+    return (
+        np.where(solved, mean, np.nan).astype(np.float32),
+        np.where(solved, np.sqrt(np.maximum(var, 0.0)), np.nan).astype(np.float32),
+        inl.sum(axis=0).astype(np.int16),
+        sigma.astype(np.float32),
+    )
+
+
+@pytest.mark.parametrize("azimuths", [1, 2, 3, 4, 6])
+def test_consensus_block_gives_the_plain_formulas_bit_for_bit(azimuths):
+    from worker.recon.height import _consensus_block
+
+    rng = np.random.default_rng(azimuths)
+    n = 5000
+    h = rng.normal(0.0, 1.0, n).astype(np.float32) + rng.normal(0.0, 0.3, (azimuths, n))
+    h[:, ::7] += rng.choice([-8.0, 0.0, 8.0], (azimuths, h[:, ::7].shape[1]))  # wrong orders
+    h = h.astype(np.float32)
+    s = rng.uniform(0.05, 0.6, (azimuths, n)).astype(np.float32)
+    s[:, ::11] = s[:, :1]  # ties in the weights
+    h[rng.random(h.shape) < 0.15] = np.nan
+    s[rng.random(s.shape) < 0.05] = np.inf
+    valid = np.isfinite(h) & np.isfinite(s) & (s > 0)
+    sf = np.where(valid, s, np.float32(np.inf))
+    k2 = np.float32(16.0)
+    got = _consensus_block(h, sf, valid, k2)
+    expected = _consensus_block_plain(h, sf, valid, k2)
+    for g, e in zip(got, expected, strict=True):
+        assert g.dtype == e.dtype
+        np.testing.assert_array_equal(g.view(np.uint8), e.view(np.uint8))
