@@ -153,6 +153,22 @@ def test_select_is_np_where_bit_for_bit():
         np.testing.assert_array_equal(_select(m, flags, mask), np.where(m, flags, mask))
 
 
+def test_at_least_is_np_maximum_bit_for_bit():
+    # The floor against a broadcast row: np.maximum's bits, NaN, infinities and signed
+    # zeros included, in place or not.
+    from worker.recon.photometric_fit import _at_least
+
+    rng = np.random.default_rng(9)
+    x = rng.normal(size=(16, 517)).astype(np.float32)
+    x[0, :6] = [np.nan, np.inf, -np.inf, -0.0, 0.0, 1e-40]
+    for lo in (np.float32(0.0), np.float32(1e-3), np.float32(-0.0)):
+        want = np.maximum(x, lo)
+        np.testing.assert_array_equal(_at_least(x, lo).view(np.int32), want.view(np.int32))
+        y = x.copy()
+        assert _at_least(y, lo, out=y) is y
+        np.testing.assert_array_equal(y.view(np.int32), want.view(np.int32))
+
+
 def test_column_gather_and_scatter_match_fancy_indexing():
     from worker.recon.photometric_fit import _cols, _rows, _set_cols
 
