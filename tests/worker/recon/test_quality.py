@@ -1,0 +1,28 @@
+"""Noise statistics of the measurements (worker.recon.quality)."""
+
+import numpy as np
+import pytest
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("size", [1, 2, 4095, 4096, 4097, 100_000, 100_001])
+def test_median_of_nonnegative_values_is_numpys_bit_for_bit(dtype, size):
+    # Spread over many binades, ties, zeros, subnormals and inf: the radix select finds the
+    # same middle values as np.partition, and the mean of the two as np.median takes it.
+    from worker.recon.quality import median_nonnegative
+
+    rng = np.random.default_rng(size)
+    spread = rng.lognormal(0, 3, size).astype(dtype)
+    ties = rng.choice(np.array([0.0, 1.0, 2.5, 2.5000002], dtype), size)
+    special = spread.copy()
+    special[rng.random(size) < 0.3] = 0
+    special[rng.random(size) < 0.05] = np.inf
+    special[rng.random(size) < 0.05] = np.finfo(dtype).smallest_subnormal
+    narrow = (1 + rng.random(size) * 1e-6).astype(dtype)  # one bucket of the histogram
+    for values in (spread, ties, special, narrow):
+        got = median_nonnegative(values)
+        expected = np.median(values)
+        assert got.dtype == expected.dtype
+        assert got.tobytes() == expected.tobytes()
+    strided = median_nonnegative(spread[::3])
+    assert strided.tobytes() == np.median(spread[::3]).tobytes()
