@@ -14,7 +14,7 @@ from scipy import ndimage
 from worker.measure.frames import angle_key, prefetch
 from worker.recon.fringe import four_step_phase, intensity_noise, phase_sigma_rad
 from worker.recon.height import consensus_azimuths, height_from_phase
-from worker.recon.unwrap import noise_aware_unwrap
+from worker.recon.unwrap import _copy_where, noise_aware_unwrap
 from worker.recon.walls import cliff_samples
 
 __all__ = ["measure_fringes"]
@@ -92,6 +92,7 @@ def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_
     # cliff_samples takes at the end of the azimuth, and the σ stack once unwrapped.
     obj_phase = ref_phase = None
     sig = sig_ref = noise_buffer = None
+    nan_frame = None  # NaN source of the masked copies below (np.where branches per pixel)
     for i, stack in enumerate(stacks):
         if on_queued is not None and i == max(0, total - 1 - ahead):
             on_queued()  # the prefetch has queued the frames of every group
@@ -120,13 +121,14 @@ def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_
         np.sqrt(sig, out=noise[key][level])
         levels = sets[key]
         if level == len(levels) - 1:
+            if nan_frame is None:
+                nan_frame = np.full(obj_phase.mean.shape, np.nan, np.float32)
             with np.errstate(invalid="ignore", divide="ignore"):
                 # Mean level A of the object relative to the reference: ρ·max(0, n·l)/cosθ.
-                ambient.append(
-                    np.where(
-                        ref_phase.mean > 0, obj_phase.mean / ref_phase.mean * rho_ref, np.nan
-                    ).astype(np.float32, copy=False)
-                )
+                level_ratio = np.divide(obj_phase.mean, ref_phase.mean)
+                level_ratio *= np.float32(rho_ref)
+            _copy_where(level_ratio, nan_frame, ~(ref_phase.mean > 0))
+            ambient.append(level_ratio)
             periods = np.array([p for p, _, _ in levels])
             wrapped_az = wrapped.pop(key)
             un = noise_aware_unwrap(
@@ -144,7 +146,9 @@ def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_
             # unwrapping's ambiguity test).
             ok = np.isfinite(h) & (un.conflicts <= 1) & (un.sigma_rad * _Z <= np.pi)
             summary[f"{key[0]:g}"] = _unwrap_summary(un, ok, periods)
-            heights.append(np.where(ok, h, np.nan).astype(np.float32, copy=False))
+            rejected = ~ok
+            _copy_where(h, nan_frame, rejected)
+            heights.append(h)
             b_obj, b_ref = zip(*amps.pop(key), strict=True)
             cliff_jobs.append(
                 side.submit(
@@ -158,9 +162,11 @@ def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_
                     pixel_size_um=meas.pixel_size_um,
                 )
             )
-            sigmas.append(np.where(ok, sigma_h, np.nan).astype(np.float32, copy=False))
-            m = obj_phase.modulation
-            mods.append(np.where(np.isfinite(m), m, np.nan).astype(np.float32, copy=False))
+            _copy_where(sigma_h, nan_frame, rejected)
+            sigmas.append(sigma_h)
+            m = obj_phase.modulation.copy()  # its buffer is the next set's
+            _copy_where(m, nan_frame, ~np.isfinite(m))
+            mods.append(m)
         if key == blur_key:
             # The camera's blur is measured on these (`pipeline.camera_blur_px`).
             period = sets[key][level][0]
