@@ -54,7 +54,7 @@ from worker.recon.integrate import (
     solve_screened_poisson,
 )
 from worker.recon.parallel import run_blocks
-from worker.recon.quality import median_nonnegative
+from worker.recon.quality import fast_median
 
 __all__ = [
     "cell_average_targets_um",
@@ -186,7 +186,7 @@ def fuse_default(
         lam = np.where(stranded, np.float32(0), lam)
     parts = ndimage.label(m_c)  # the mask's connected parts: anchored, then zero-mean
     lam = _anchor_parts_without_data(parts, m_c, lam, wx, wy)
-    x0 = np.where(has_f, f_c, np.float32(np.nanmedian(f_c[has_f]) if has_f.any() else 0))
+    x0 = np.where(has_f, f_c, np.float32(fast_median(f_c[has_f]) if has_f.any() else 0))
     robust_pass = has_f.any() and outlier_sigmas > 0 and robust_passes > 0
     # With a robust pass to follow, the first solve only sets the weights (and warm-starts
     # the last solve): 1e-3 is enough for residuals judged at 4σ.
@@ -493,7 +493,7 @@ def _garrote_factor(c, significance):
     finite = c[np.isfinite(c)][::3]
     if finite.size < 25:
         return np.zeros_like(c)
-    noise = 1.4826 * float(median_nonnegative(np.abs(finite - np.median(finite))))
+    noise = 1.4826 * float(fast_median(np.abs(finite - fast_median(finite))))
     floor = np.float32(np.square(significance * noise))
     c2 = np.square(np.nan_to_num(c, nan=0.0, posinf=0.0, neginf=0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -505,7 +505,7 @@ def _garrote(c, significance):
     finite = c[np.isfinite(c)][::3]  # a third of the values fixes the MAD to < 1 %
     if finite.size < 25:
         return np.zeros_like(c)
-    noise = 1.4826 * float(median_nonnegative(np.abs(finite - np.median(finite))))
+    noise = 1.4826 * float(fast_median(np.abs(finite - fast_median(finite))))
     floor = np.float32(np.square(significance * noise))
     c = np.nan_to_num(c, nan=0.0, posinf=0.0, neginf=0.0)
     c2 = np.square(c)
@@ -601,7 +601,7 @@ def _cut_discontinuities(f, sig_f, has_f, wx, wy, tx, ty, cut_x, cut_y, *, k, ma
     wx = cut(wx, tx, filled[:, :-1], filled[:, 1:], var_f[:, :-1], var_f[:, 1:], cut_x)
     wy = cut(wy, ty, filled[:-1, :], filled[1:, :], var_f[:-1, :], var_f[1:, :], cut_y)
     active = np.concatenate([wx0[wx0 > 0], wy0[wy0 > 0]])
-    faint = np.float32(1e-3 * (float(median_nonnegative(active)) if active.size else 1.0))
+    faint = np.float32(1e-3 * (float(fast_median(active)) if active.size else 1.0))
     wx, sx = _cut_through_untrusted(wx, wx0, tx, filled, var_f, cut_x, k, faint, max_step)
     wy, sy = _cut_through_untrusted(
         wy.T, wy0.T, ty.T, filled.T, var_f.T, cut_y.T, k, faint, max_step
@@ -692,7 +692,7 @@ def _zero_mean_where_no_data(parts, h, mask, has_data):
 def _bridge(w, both_in_mask, *targets):
     """Faint weight and flat targets on the mask's edges that have no weight: (w, *targets)."""
     active = w[w > 0]
-    faint = np.float32(1e-3 * (float(median_nonnegative(active)) if active.size else 1.0))
+    faint = np.float32(1e-3 * (float(fast_median(active)) if active.size else 1.0))
     gap = both_in_mask & ~(w > 0)
     return np.where(gap, faint, w), *(np.where(gap, np.float32(0), t) for t in targets)
 
@@ -788,7 +788,7 @@ def _sharpened(h, valid, blur_sigma_px, pixel_size_um, max_slope, significance):
     sample = lap[inner][::3]  # a third of the values fixes the MAD to < 1 %
     if sample.size < 25:
         return h
-    noise = 1.4826 * float(median_nonnegative(np.abs(sample - np.median(sample))))
+    noise = 1.4826 * float(fast_median(np.abs(sample - fast_median(sample))))
     floor = np.float32(np.square(significance * noise))
     lap2 = np.square(lap)
     with np.errstate(invalid="ignore", divide="ignore"):

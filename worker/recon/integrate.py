@@ -26,7 +26,7 @@ import numpy as np
 from scipy import fft, ndimage
 
 from worker.recon.parallel import run_blocks
-from worker.recon.quality import median_nonnegative
+from worker.recon.quality import fast_median
 
 __all__ = [
     "ScreenedPoisson",
@@ -262,7 +262,7 @@ def _solve_prepared(tx, ty, wx, wy, lam, data, h, rtol, max_iter, workers):
     # A typical edge weight for the preconditioner; a sample of the weights is enough.
     active_w = np.concatenate([wx.ravel()[::7], wy.ravel()[::7]])
     active_w = active_w[active_w > 0]
-    w_bar = float(median_nonnegative(active_w)) if active_w.size else 1.0
+    w_bar = float(fast_median(active_w)) if active_w.size else 1.0
     lam_bar = float(lam[constrained].mean()) if constrained.any() else 0.0
     pure_neumann = lam_bar == 0.0
     # Pixels that no term touches (off the mask) form a separate block of the system; giving

@@ -15,29 +15,36 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["NORMAL_FLOOR_RAD", "fringe_sigma_um", "median_nonnegative", "normal_sigma_rad"]
+__all__ = ["NORMAL_FLOOR_RAD", "fast_median", "fringe_sigma_um", "normal_sigma_rad"]
 
 # What a photometric normal's residual cannot show (light calibration, non-Lambertian bias):
 # the floor of its predicted angular noise.
 NORMAL_FLOOR_RAD = 0.003
 
 
-def median_nonnegative(values: np.ndarray):
-    """np.median of a 1-D array of values ≥ +0 (no NaN, no −0), bit for bit, in a few passes.
+def fast_median(values: np.ndarray):
+    """np.median of a 1-D float array, bit for bit, in a few passes instead of a partition
+    of the whole array (~4× faster at 1.7 M values).
 
-    The bit patterns of non-negative IEEE floats order like their values, so the middle
-    order statistics are found by a radix select (Knuth, TAOCP vol. 3, §5.3.3): a histogram
-    of the top 16 bits names the bucket holding each, and only that bucket is partitioned
-    (np.partition of the whole array costs ~5× more). The two middle values of an even count
-    are averaged by np.median itself, as it does on the whole array. Other dtypes, and
-    arrays under 4096 values, go to np.median.
+    The IEEE patterns, sign-folded (negative: all bits flipped; else the sign bit set),
+    order like the values, so the middle order statistics are found by a radix select
+    (Knuth, TAOCP vol. 3, §5.3.3): a histogram of the keys' top 16 bits names the bucket
+    holding each, and only that bucket is partitioned. np.median then averages the two
+    middle values of an even count as it does on the whole array. Arrays with a NaN, a
+    middle value of ±0 (np.partition may return either zero), other dtypes and arrays
+    under 4096 values go to np.median.
     """
     a = np.ravel(values)
     unsigned = {np.dtype(np.float32): np.uint32, np.dtype(np.float64): np.uint64}.get(a.dtype)
     if unsigned is None or a.size < 4096:
         return np.median(a)
-    a = np.ascontiguousarray(a)
-    bucket = (a.view(unsigned) >> (8 * a.itemsize - 16)).astype(np.intp)
+    if np.isnan(a).any():
+        return np.median(a)
+    # The keys' top 16 bits: the pattern's top 16 bits ^ 0xFFFF for negatives, ^ 0x8000 else.
+    high = (np.ascontiguousarray(a).view(unsigned) >> (8 * a.itemsize - 16)).astype(np.uint16)
+    bucket = (high >> 15) * np.uint16(0x7FFF)
+    bucket |= np.uint16(0x8000)
+    bucket ^= high
     below = np.cumsum(np.bincount(bucket))  # values in the buckets up to each
     n = a.size
     middle = []
@@ -45,6 +52,8 @@ def median_nonnegative(values: np.ndarray):
         b = int(np.searchsorted(below, k, side="right"))
         rank = k - (int(below[b - 1]) if b else 0)
         middle.append(np.partition(a[bucket == b], rank)[rank])
+    if any(m == 0 for m in middle):
+        return np.median(a)
     return np.median(np.array(middle, a.dtype))
 
 
@@ -69,7 +78,7 @@ def normal_sigma_rad(
     with np.errstate(invalid="ignore", divide="ignore"):
         sigma_s = np.where(k > 3, res * np.sqrt(k / np.maximum(k - 3, 1)), np.nan)
     fit = solved & np.isfinite(sigma_s) & (k > 3)
-    typical = float(median_nonnegative(sigma_s[fit])) if fit.any() else 0.02
+    typical = float(fast_median(sigma_s[fit])) if fit.any() else 0.02
     sigma_s = np.where(fit, sigma_s, typical)
     sin2 = np.sin(np.radians(polar_deg)) ** 2
     sig = sigma_s * np.sqrt(2.0 / (np.maximum(k, 3) * sin2))
@@ -105,11 +114,11 @@ def fringe_sigma_um(
     sample = np.concatenate(d2)
     if sample.size < 25:
         return out, float("inf")
-    mad = float(median_nonnegative(np.abs(sample - np.median(sample))))
+    mad = float(fast_median(np.abs(sample - fast_median(sample))))
     sigma = max(1.4826 * mad / np.sqrt(6.0), floor_um)
     if azimuths_used is not None:
         a = np.asarray(azimuths_used, np.float32)
-        typical = float(median_nonnegative(a[m])) if m.any() else 1.0
+        typical = float(fast_median(a[m])) if m.any() else 1.0
         scale = np.sqrt(typical / np.maximum(a, 1))
     else:
         scale = np.ones(h.shape, np.float32)

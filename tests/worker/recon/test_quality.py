@@ -6,10 +6,10 @@ import pytest
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 @pytest.mark.parametrize("size", [1, 2, 4095, 4096, 4097, 100_000, 100_001])
-def test_median_of_nonnegative_values_is_numpys_bit_for_bit(dtype, size):
-    # Spread over many binades, ties, zeros, subnormals and inf: the radix select finds the
-    # same middle values as np.partition, and the mean of the two as np.median takes it.
-    from worker.recon.quality import median_nonnegative
+def test_fast_median_is_numpys_bit_for_bit(dtype, size):
+    # Both signs over many binades, ties, ±0, subnormals, ±inf, NaN: the radix select finds
+    # the same middle values as np.partition, and the mean of the two as np.median takes it.
+    from worker.recon.quality import fast_median
 
     rng = np.random.default_rng(size)
     spread = rng.lognormal(0, 3, size).astype(dtype)
@@ -19,10 +19,15 @@ def test_median_of_nonnegative_values_is_numpys_bit_for_bit(dtype, size):
     special[rng.random(size) < 0.05] = np.inf
     special[rng.random(size) < 0.05] = np.finfo(dtype).smallest_subnormal
     narrow = (1 + rng.random(size) * 1e-6).astype(dtype)  # one bucket of the histogram
-    for values in (spread, ties, special, narrow):
-        got = median_nonnegative(values)
+    signed = spread * rng.choice(np.array([-1, 1], dtype), size)
+    zeros = np.where(rng.random(size) < 0.5, dtype(0), -spread)  # the median is ±0
+    zeros[rng.random(size) < 0.2] = -0.0
+    with_nan = signed.copy()
+    with_nan[size // 2] = np.nan
+    for values in (spread, ties, special, narrow, signed, -special, zeros, with_nan):
+        got = fast_median(values)
         expected = np.median(values)
         assert got.dtype == expected.dtype
-        assert got.tobytes() == expected.tobytes()
-    strided = median_nonnegative(spread[::3])
+        assert got.tobytes() == expected.tobytes() or (np.isnan(got) and np.isnan(expected))
+    strided = fast_median(spread[::3])
     assert strided.tobytes() == np.median(spread[::3]).tobytes()
