@@ -18,6 +18,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from worker.recon.quality import fast_median
+
 __all__ = ["correct_normal_bias", "correct_normals_to_positions", "correction_scale_px"]
 
 # Noise gain of a Gaussian derivative: white noise of unit variance smoothed by a Gaussian of
@@ -65,7 +67,7 @@ def correct_normal_bias(
     m = np.asarray(mask, bool)
     sig = np.broadcast_to(np.asarray(height_sigma_um, np.float32), m.shape)
     ok = m & np.isfinite(sig) & (sig > 0)
-    sigma_h = float(np.median(sig[ok])) if ok.any() else float("nan")
+    sigma_h = float(fast_median(sig[ok])) if ok.any() else float("nan")
     scale = correction_scale_px(sigma_h, pixel_size_um=pixel_size_um, tolerance_rad=floor_rad / 5)
     return correct_normals_to_positions(
         normals,
@@ -176,8 +178,8 @@ def _correct(n, f, m, s, sigma_px, sig, bias_floor_rad, significance, outlier_si
         + np.square(nz[support] - qz[support])
     )
     sample = chord[::4]
-    med = float(np.median(sample))
-    limit = med + outlier_sigmas * 1.4826 * float(np.median(np.abs(sample - med)))
+    med = float(fast_median(sample))
+    limit = med + outlier_sigmas * 1.4826 * float(fast_median(np.abs(sample - med)))
     support[support] = chord <= limit
 
     weight, sigma_h = _weights(support, sig)
@@ -200,7 +202,7 @@ def _correct(n, f, m, s, sigma_px, sig, bias_floor_rad, significance, outlier_si
     noise = sigma_h * _DOG_NOISE / (s * sigma_px**2) if np.isfinite(sigma_h) else 0.0
     # The bias belongs to the photometric set-up (lights, material), not to a pixel: the
     # correction is made everywhere or nowhere.
-    if np.median(theta[support][::4]) <= significance * np.hypot(bias_floor_rad, noise):
+    if fast_median(theta[support][::4]) <= significance * np.hypot(bias_floor_rad, noise):
         return out
     theta = theta * np.clip(w / np.float32(min_support), 0, 1)
     apply = m & np.isfinite(nx) & (theta > 0) & (cn > 0)
@@ -226,7 +228,7 @@ def _weights(support, sig):
     ok = support & np.isfinite(sig) & (sig > 0)
     if not ok.any():
         return support.astype(np.float32), float("nan")
-    typical = float(np.median(sig[ok][::4]))  # a quarter of the pixels fix it to ~1 %
+    typical = float(fast_median(sig[ok][::4]))  # a quarter of the pixels fix it to ~1 %
     with np.errstate(divide="ignore", invalid="ignore"):
         rel = np.where(ok, np.square(typical / sig), 0)
     return np.minimum(rel, 1).astype(np.float32), typical
