@@ -125,8 +125,8 @@ def fuse_default(
         sig_x = s * sig_n[crop] * np.sqrt((1 + gx2 + gy2) * (1 + gx2))
         sig_y = s * sig_n[crop] * np.sqrt((1 + gx2 + gy2) * (1 + gy2))
         step_sigma = s * sig_n[crop] / np.square(nz)  # along the tilt: the break test's scale
-        w_px = np.where(has_slope, 1.0 / np.square(sig_x), 0).astype(np.float32)
-        w_py = np.where(has_slope, 1.0 / np.square(sig_y), 0).astype(np.float32)
+        w_px = np.where(has_slope, 1.0 / np.square(sig_x), 0).astype(np.float32, copy=False)
+        w_py = np.where(has_slope, 1.0 / np.square(sig_y), 0).astype(np.float32, copy=False)
     # An edge's target is the mean of two slopes; with independent errors its inverse variance
     # is twice the harmonic mean of the pixel weights, but neighbouring normals share errors
     # (smooth shading, interreflections), so the conservative harmonic mean is used. It is 0
@@ -165,7 +165,7 @@ def fuse_default(
     f_c = f[crop]
     has_f = m_c & np.isfinite(f_c) & np.isfinite(sig_f[crop])
     with np.errstate(divide="ignore"):
-        lam = np.where(has_f, 1.0 / np.square(sig_f[crop]), 0).astype(np.float32)
+        lam = np.where(has_f, 1.0 / np.square(sig_f[crop]), 0).astype(np.float32, copy=False)
 
     cut_x = cut_y = None
     if has_f.any() and outlier_sigmas > 0:
@@ -320,7 +320,7 @@ def term_leverages(lam, wx, wy):
     stiff[:-1, :] += wy
     with np.errstate(divide="ignore", invalid="ignore"):
         m = lam / (stiff / 4)
-    lev_p = np.where(has, np.where(stiff > 0, _hat_diag(m), 1), 0).astype(np.float32)
+    lev_p = np.where(has, np.where(stiff > 0, _hat_diag(m), 1), 0).astype(np.float32, copy=False)
     n_edges = int(np.count_nonzero(wx) + np.count_nonzero(wy))
     n_active = int(np.count_nonzero(has | (stiff > 0)))
     lev_e = float(np.clip((n_active - lev_p.sum()) / max(n_edges, 1), 0, 0.99))
@@ -464,7 +464,7 @@ def transverse_mean_slopes(gx: np.ndarray, gy: np.ndarray, *, significance: floa
             smooth += np.float32(tap) * np.where(np.isfinite(nb), nb - g, 0)
         dev = g - smooth
         kept = _garrote_factor(dev, significance) * np.nan_to_num(dev)
-        return (smooth + kept).astype(np.float32)
+        return (smooth + kept).astype(np.float32, copy=False)
 
     with np.errstate(invalid="ignore"):
         return across(gx, 0), across(gy, 1)
@@ -497,7 +497,7 @@ def _garrote_factor(c, significance):
     floor = np.float32(np.square(significance * noise))
     c2 = np.square(np.nan_to_num(c, nan=0.0, posinf=0.0, neginf=0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(c2 > floor, 1 - floor / c2, np.float32(0)).astype(np.float32)
+        return np.where(c2 > floor, 1 - floor / c2, np.float32(0)).astype(np.float32, copy=False)
 
 
 def _garrote(c, significance):
@@ -510,7 +510,9 @@ def _garrote(c, significance):
     c = np.nan_to_num(c, nan=0.0, posinf=0.0, neginf=0.0)
     c2 = np.square(c)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(c2 > floor, c * (1 - floor / c2), np.float32(0)).astype(np.float32)
+        return np.where(c2 > floor, c * (1 - floor / c2), np.float32(0)).astype(
+            np.float32, copy=False
+        )
 
 
 # Rows of `_cauchy_weights`' blocks hold about this many pixels (their dozen arrays stay in
@@ -587,14 +589,14 @@ def _cut_discontinuities(f, sig_f, has_f, wx, wy, tx, ty, cut_x, cut_y, *, k, ma
     """
     filled = np.where(has_f, f, np.float32(0))
     trusted = _step_consistent(filled, sig_f, has_f, wx, wy, tx, ty, k=k)
-    var_f = np.where(trusted, np.square(sig_f), np.inf).astype(np.float32)
+    var_f = np.where(trusted, np.square(sig_f), np.inf).astype(np.float32, copy=False)
 
     def cut(w, t, fa, fb, va, vb, allowed):
         with np.errstate(invalid="ignore", divide="ignore"):
             var = va + vb + np.where(w > 0, 1.0 / w, np.inf)
             r2 = np.square((fb - fa) - t)
             keep = np.minimum(1.0, k * k * var / r2)
-        keep = np.where(np.isfinite(keep) & allowed, keep, 1).astype(np.float32)
+        keep = np.where(np.isfinite(keep) & allowed, keep, 1).astype(np.float32, copy=False)
         return w * keep
 
     wx0, wy0 = wx, wy
@@ -658,7 +660,7 @@ def _step_consistent(f, sig_f, has_f, wx, wy, tx, ty, *, k):
     the two or more neighbours on its own side — on sloped ground too, where a 3×3 median of
     the raw heights would reject the pixels at the foot of the cliff.
     """
-    var = np.where(has_f, np.square(sig_f), np.inf).astype(np.float32)
+    var = np.where(has_f, np.square(sig_f), np.inf).astype(np.float32, copy=False)
     with np.errstate(invalid="ignore", divide="ignore"):
         inv_wx = np.where(wx > 0, 1.0 / wx, np.inf)
         inv_wy = np.where(wy > 0, 1.0 / wy, np.inf)
@@ -700,7 +702,7 @@ def _bridge(w, both_in_mask, *targets):
 def _edge_weight(wa, wb):
     with np.errstate(divide="ignore", invalid="ignore"):
         w = 2.0 * wa * wb / (wa + wb)
-    return np.where((wa > 0) & (wb > 0), w, 0).astype(np.float32)
+    return np.where((wa > 0) & (wb > 0), w, 0).astype(np.float32, copy=False)
 
 
 def _anchor_parts_without_data(parts, mask, lam, wx, wy):
@@ -777,7 +779,7 @@ def sharpen_heights(
 
 def _sharpened(h, valid, blur_sigma_px, pixel_size_um, max_slope, significance):
     """`sharpen_heights` on a box holding every valid pixel."""
-    f = np.where(valid, h, 0).astype(np.float32)
+    f = np.where(valid, h, 0).astype(np.float32, copy=False)
     inner = np.zeros_like(valid)
     inner[1:-1, 1:-1] = (
         valid[1:-1, 1:-1] & valid[:-2, 1:-1] & valid[2:, 1:-1] & valid[1:-1, :-2] & valid[1:-1, 2:]
@@ -795,4 +797,4 @@ def _sharpened(h, valid, blur_sigma_px, pixel_size_um, max_slope, significance):
         gain = np.where(lap2 > floor, 1 - floor / lap2, np.float32(0))
     limit = np.float32(2 * max_slope * pixel_size_um)
     out = h - np.float32(0.5 * blur_sigma_px**2) * np.clip(gain * lap, -limit, limit)
-    return np.where(valid, out, h).astype(np.float32)
+    return np.where(valid, out, h).astype(np.float32, copy=False)

@@ -283,7 +283,7 @@ def _solve_prepared(tx, ty, wx, wy, lam, data, h, rtol, max_iter, workers):
     diag[1:, :] += wy
     diag[:-1, :] += wy
     d_bar = np.float32(4.0 * w_bar + lam_bar)
-    scale = np.sqrt(d_bar / np.maximum(diag, d_bar * 1e-6)).astype(np.float32)
+    scale = np.sqrt(d_bar / np.maximum(diag, d_bar * 1e-6)).astype(np.float32, copy=False)
 
     if lam_bar < 1e-4 * w_bar:
         # Nearly pure Poisson (normals alone): the smooth modes dominate, which the plain DCT

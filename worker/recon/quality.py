@@ -83,7 +83,7 @@ def normal_sigma_rad(
     sin2 = np.sin(np.radians(polar_deg)) ** 2
     sig = sigma_s * np.sqrt(2.0 / (np.maximum(k, 3) * sin2))
     sig = np.sqrt(sig**2 + floor_rad**2)
-    return np.where(solved, sig, np.inf).astype(np.float32)
+    return np.where(solved, sig, np.inf).astype(np.float32, copy=False)
 
 
 def fringe_sigma_um(
@@ -146,7 +146,7 @@ def crease_sigma_um(normals: np.ndarray, *, pixel_size_um: float) -> np.ndarray:
         gy = np.nan_to_num(n[..., 1] / n[..., 2], nan=0.0, posinf=0.0, neginf=0.0)
     s = float(pixel_size_um)
     laplacian = (np.gradient(gx, axis=1) + np.gradient(gy, axis=0)) / s
-    return (s * s * np.abs(laplacian) / 8.0).astype(np.float32)
+    return (s * s * np.abs(laplacian) / 8.0).astype(np.float32, copy=False)
 
 
 def camera_blur_sigma_px(
