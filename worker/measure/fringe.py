@@ -13,7 +13,8 @@ from scipy import ndimage
 
 from worker.measure.frames import angle_key, prefetch
 from worker.recon.fringe import four_step_phase, intensity_noise, phase_sigma_rad
-from worker.recon.height import _median_in_place, consensus_azimuths, height_from_phase
+from worker.recon.height import consensus_azimuths, height_from_phase
+from worker.recon.quality import fast_median
 from worker.recon.unwrap import _copy_where, noise_aware_unwrap
 from worker.recon.walls import cliff_samples
 
@@ -217,8 +218,8 @@ def _central_median(a) -> float:
     """Median of the finite values of the central half of the frame (away from its border)."""
     rows, cols = a.shape
     m = a[rows // 4 : rows - rows // 4, cols // 4 : cols - cols // 4]
-    m = m[np.isfinite(m)]  # a fresh copy, which the median may reorder
-    return float(_median_in_place(m)) if m.size else float("nan")
+    m = m[np.isfinite(m)]
+    return float(fast_median(m)) if m.size else float("nan")
 
 
 def _reusable(phase):

@@ -266,16 +266,3 @@ def test_consensus_block_gives_the_plain_formulas_bit_for_bit(azimuths):
     for g, e in zip(got, expected, strict=True):
         assert g.dtype == e.dtype
         np.testing.assert_array_equal(g.view(np.uint8), e.view(np.uint8))
-
-
-@pytest.mark.parametrize("n", [1, 2, 3, 10, 11, 1000, 1001])
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_median_in_place_is_np_median(n, dtype):
-    from worker.recon.height import _median_in_place
-
-    rng = np.random.default_rng(n)
-    for _ in range(20):
-        x = np.round(rng.standard_normal(n) * 3, 1).astype(dtype)  # ties
-        expected = np.median(x)
-        got = _median_in_place(x.copy())
-        assert type(got) is type(expected) and got == expected
