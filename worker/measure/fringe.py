@@ -205,13 +205,27 @@ def _unwrap_summary(un, ok, periods) -> dict:
     """What the unwrapping of one azimuth did, for the report (fractions of the pixels whose
     coarsest fringe was seen, i.e. lit at that azimuth)."""
     lit = un.level_used >= 0
-    n = max(int(lit.sum()), 1)
+    n = max(np.count_nonzero(lit), 1)
     lev = un.level_used[ok]
     return {
-        "kept": round(float(ok.sum()) / n, 4),
-        "conflicts": round(float((lit & (un.conflicts > 1)).sum()) / n, 4),
-        "finest_period_um_median": float(periods[int(np.median(lev))]) if lev.size else None,
+        "kept": round(np.count_nonzero(ok) / n, 4),
+        "conflicts": round(np.count_nonzero(lit & (un.conflicts > 1)) / n, 4),
+        "finest_period_um_median": float(periods[_median_level(lev)]) if lev.size else None,
     }
+
+
+def _median_level(levels) -> int:
+    """int(np.median(levels)) of level indices (≥ 0) from their counts: the middle one, or
+    the mean of the two middle ones truncated (np.median sorts a megapixel's worth)."""
+    below = np.cumsum(np.bincount(levels))  # how many are ≤ each level
+
+    def ranked(k: int) -> int:  # the level of rank k in ascending order
+        return int(np.searchsorted(below, k, side="right"))
+
+    n = levels.size
+    if n % 2:
+        return ranked(n // 2)
+    return int((ranked(n // 2 - 1) + ranked(n // 2)) / 2)
 
 
 def _central_median(a) -> float:

@@ -99,3 +99,13 @@ def test_central_median_is_np_median_of_the_finite_central_values(shape):
         m = m[np.isfinite(m)]
         expected = float(np.median(m)) if m.size else float("nan")
         np.testing.assert_equal(_central_median(a), expected)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 10, 11, 1000, 1001])
+def test_median_level_is_int_of_np_median(n):
+    from worker.measure.fringe import _median_level
+
+    rng = np.random.default_rng(n)
+    for top in (1, 2, 5, 11):
+        levels = rng.integers(0, top, n).astype(np.int16)
+        assert _median_level(levels) == int(np.median(levels))
