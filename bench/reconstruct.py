@@ -210,7 +210,9 @@ def _print_speed(seed: int, decodes: list, runs: list[dict]) -> None:
     print("| stage | seconds |\n|---|---|")
     for k in runs[0]["timings"]:
         # The colour stage runs in a thread beside mask, fusion and walls.
-        label = "color (background, overlaps mask to walls)" if k == "color" else k
+        label = (
+            "color (background: decodes its frames, overlaps mask to walls)" if k == "color" else k
+        )
         print(f"| {label} | {med([r['timings'].get(k, np.nan) for r in runs]):.2f} |")
     print(f"| decode only (all images) | {dec:.2f} |")
     total = med([r["timings"]["total"] for r in runs])
