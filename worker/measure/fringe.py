@@ -12,10 +12,10 @@ import numpy as np
 from scipy import ndimage
 
 from worker.measure.frames import angle_key, prefetch
+from worker.recon.arrays import copy_where, fast_median
 from worker.recon.fringe import four_step_phase, intensity_noise, phase_sigma_rad
 from worker.recon.height import consensus_azimuths, height_from_phase
-from worker.recon.quality import fast_median
-from worker.recon.unwrap import _copy_where, noise_aware_unwrap
+from worker.recon.unwrap import noise_aware_unwrap
 from worker.recon.walls import cliff_samples
 
 __all__ = ["measure_fringes"]
@@ -128,7 +128,7 @@ def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_
                 # Mean level A of the object relative to the reference: ρ·max(0, n·l)/cosθ.
                 level_ratio = np.divide(obj_phase.mean, ref_phase.mean)
                 level_ratio *= np.float32(rho_ref)
-            _copy_where(level_ratio, nan_frame, ~(ref_phase.mean > 0))
+            copy_where(level_ratio, nan_frame, ~(ref_phase.mean > 0))
             ambient.append(level_ratio)
             periods = np.array([p for p, _, _ in levels])
             wrapped_az = wrapped.pop(key)
@@ -148,7 +148,7 @@ def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_
             ok = np.isfinite(h) & (un.conflicts <= 1) & (un.sigma_rad * _Z <= np.pi)
             summary[f"{key[0]:g}"] = _unwrap_summary(un, ok, periods)
             rejected = ~ok
-            _copy_where(h, nan_frame, rejected)
+            copy_where(h, nan_frame, rejected)
             heights.append(h)
             b_obj, b_ref = zip(*amps.pop(key), strict=True)
             cliff_jobs.append(
@@ -163,10 +163,10 @@ def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_
                     pixel_size_um=meas.pixel_size_um,
                 )
             )
-            _copy_where(sigma_h, nan_frame, rejected)
+            copy_where(sigma_h, nan_frame, rejected)
             sigmas.append(sigma_h)
             m = obj_phase.modulation.copy()  # its buffer is the next set's
-            _copy_where(m, nan_frame, ~np.isfinite(m))
+            copy_where(m, nan_frame, ~np.isfinite(m))
             mods.append(m)
         if key == blur_key:
             # The camera's blur is measured on these (`pipeline.camera_blur_px`).

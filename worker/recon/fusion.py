@@ -46,6 +46,7 @@ from functools import partial
 import numpy as np
 from scipy import ndimage
 
+from worker.recon.arrays import fast_median
 from worker.recon.integrate import (
     _bbox,
     _label_stats,
@@ -54,7 +55,6 @@ from worker.recon.integrate import (
     solve_screened_poisson,
 )
 from worker.recon.parallel import run_blocks
-from worker.recon.quality import fast_median
 
 __all__ = [
     "cell_average_targets_um",

@@ -23,9 +23,8 @@ import scipy.ndimage as ndi
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from worker.recon.arrays import copy_where, fast_median
 from worker.recon.parallel import run_blocks
-from worker.recon.quality import fast_median
-from worker.recon.unwrap import _copy_where
 
 __all__ = [
     "CombinedHeight",
@@ -268,9 +267,9 @@ def _consensus_block(hf, sf, valid, k2):
         for d in range(1, a):
             wsum += wv[d] * agree[c][d]
         better = (n > best_n) | ((n == best_n) & (wsum > best_w))
-        _copy_where(best_n, n, better)
-        _copy_where(best_w, wsum, better)
-        _copy_where(best, np.full_like(best, c), better)
+        copy_where(best_n, n, better)
+        copy_where(best_w, wsum, better)
+        copy_where(best, np.full_like(best, c), better)
     n_valid = valid.view(np.uint8).sum(axis=0, dtype=np.uint8)  # A < 256
     solved = (best >= 0) & ((best_n >= 2) | (n_valid == 1))
     # The inliers are the azimuths that agree with the chosen centre (a valid azimuth:
@@ -279,10 +278,10 @@ def _consensus_block(hf, sf, valid, k2):
     for c in range(a):
         chosen = best == c
         for d in range(a):
-            _copy_where(inl[d], agree[c][d], chosen)
+            copy_where(inl[d], agree[c][d], chosen)
     inl &= solved[None]
     wi = np.zeros_like(wv)
-    _copy_where(wi, wv, inl)
+    copy_where(wi, wv, inl)
     wsum = wi.sum(axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):
         mean = (wi * hv).sum(axis=0) / wsum

@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 from scipy import fft, ndimage
 
+from worker.recon.arrays import fast_median
 from worker.recon.parallel import run_blocks
-from worker.recon.quality import fast_median
 
 __all__ = [
     "ScreenedPoisson",

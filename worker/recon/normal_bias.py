@@ -18,7 +18,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from worker.recon.quality import fast_median
+from worker.recon.arrays import fast_median
 
 __all__ = ["correct_normal_bias", "correct_normals_to_positions", "correction_scale_px"]
 

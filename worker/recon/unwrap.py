@@ -15,9 +15,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
+from worker.recon.arrays import copy_where
 from worker.recon.parallel import run_blocks
 
 __all__ = [
@@ -257,11 +257,11 @@ def noise_aware_unwrap(
             sigma = np.sqrt(info, out=out["sigma"][sl])
             np.divide(np.float32(1.0), sigma, out=sigma)
         nan = nan_rows[: len(est)]
-        _copy_where(sigma, nan, undefined)
-        _copy_where(est, nan, undefined)
+        copy_where(sigma, nan, undefined)
+        copy_where(est, nan, undefined)
         out["est"][sl] = est
         if diagnostics:
-            _copy_where(worst, nan, undefined)
+            copy_where(worst, nan, undefined)
             out["worst"][sl] = worst
             info *= ~undefined  # np.where(…, info, 0): info is finite (σ ≥ 1e-5 rad)
             out["info"][sl] = info
@@ -302,7 +302,7 @@ def _unwrap_block(w, sig, q, ratio01, z, log_eps, k2, model_sigma_rad, *, diagno
         # would call their own model errors inconsistent.
         var += np.float32(model_sigma_rad**2)
         inv_var = np.zeros_like(var)
-        _copy_where(inv_var, one / var, detected)
+        copy_where(inv_var, one / var, detected)
         u0 = wrap_phase(w[0])
         ok = (pi - np.abs(u0)) * np.sqrt(inv_var[0]) >= z
         if ratio01 is not None:
@@ -342,26 +342,15 @@ def _unwrap_block(w, sig, q, ratio01, z, log_eps, k2, model_sigma_rad, *, diagno
             inv *= qi
             inv *= u
             num += inv
-            _copy_where(est, num / info, acc)
+            copy_where(est, num / info, acc)
             if diagnostics:
-                _copy_where(worst, np.maximum(worst, r, out=r), acc)
-            _copy_where(level, np.full_like(level, i), acc)
+                copy_where(worst, np.maximum(worst, r, out=r), acc)
+            copy_where(level, np.full_like(level, i), acc)
         if diagnostics:
             worst /= two_pi
         conflicts = detected[1:].sum(axis=0, dtype=np.int16)
         conflicts -= accepted
     return est, info, worst, level, conflicts
-
-
-def _copy_where(dst: np.ndarray, src: np.ndarray, mask: np.ndarray) -> None:
-    """np.copyto(dst, src, where=mask) for C-contiguous arrays of one shape, by OpenCV's
-    masked copy: numpy's masked loops and np.where branch per element, 3–10× slower on the
-    mixed masks of fringe edges and shadows (the unwrapping's largest cost)."""
-    if not dst.flags.c_contiguous or mask.dtype != bool:
-        raise ValueError("dst must be C-contiguous (OpenCV writes into its memory), mask bool")
-    cols = dst.shape[-1]
-    rows = (-1, cols)  # 2-D: a 3-D array would be read as an image of `cols` channels
-    cv2.copyTo(src.reshape(rows), mask.view(np.uint8).reshape(rows), dst.reshape(rows))
 
 
 def paper_consistent_unwrap(half_range_rad: np.ndarray, period_um) -> UnwrappedPhase:

@@ -333,27 +333,3 @@ def test_noise_aware_unwrap_without_diagnostics_leaves_only_them_out():
     finite = np.isfinite(full.dpsi_rad)
     assert np.isnan(full.sigma_rad[~finite]).all() and (full.weight[~finite] == 0).all()
     np.testing.assert_allclose(full.weight[finite], full.sigma_rad[finite] ** -2.0, rtol=1e-6)
-
-
-@pytest.mark.parametrize(
-    ("shape", "dtype"), [((3, 5, 7), np.float32), ((4, 9), np.int16), ((1, 1), np.float32)]
-)
-def test_copy_where_is_numpys_masked_copy(shape, dtype):
-    from worker.recon.unwrap import _copy_where
-
-    rng = np.random.default_rng(5)
-    src = rng.normal(0, 9, shape).astype(dtype)
-    dst = rng.normal(0, 9, shape).astype(dtype)
-    mask = rng.random(shape) < 0.5
-    expected = dst.copy()
-    np.copyto(expected, src, where=mask)
-    _copy_where(dst, src, mask)
-    np.testing.assert_array_equal(dst, expected)
-
-
-def test_copy_where_refuses_a_destination_it_cannot_write_in_place():
-    from worker.recon.unwrap import _copy_where
-
-    dst = np.zeros((6, 8), np.float32)[:, ::2]
-    with pytest.raises(ValueError, match="C-contiguous"):
-        _copy_where(dst, np.ones((6, 4), np.float32), np.ones((6, 4), bool))
