@@ -2,8 +2,9 @@
 
 Streams the frames: each fringe set of four phases with its reference set is decoded in
 threads while the previous one is processed, in float32, and dropped once reduced; the
-photometric and colour frames are decoded meanwhile, in one more thread, so that neither
-core waits while the other computes. Calls the pure functions of `worker.recon`.
+photometric frames (and the colour frames, unless the colour stage runs in the background,
+where it decodes its own) are decoded meanwhile, in one more thread, so that neither core
+waits while the other computes. Calls the pure functions of `worker.recon`.
 """
 
 from __future__ import annotations
