@@ -11,7 +11,7 @@ __all__ = ["copy_where", "fast_median"]
 
 def fast_median(values: np.ndarray):
     """np.median of a 1-D float array, bit for bit, in a few passes instead of a partition
-    of the whole array (~4× faster at 1.7 M values).
+    of the whole array (~3× faster: 14 → 5 ms at 1.7 M float32 values).
 
     The IEEE patterns, sign-folded (negative: all bits flipped; else the sign bit set),
     order like the values, so the middle order statistics are found by a radix select
