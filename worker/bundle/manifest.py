@@ -42,6 +42,8 @@ class Camera:
     pixel_size_um: float
     bit_depth: int
     response_gamma: float = 1.0
+    # σ of the calibrated Gaussian PSF on the object plane; None: nobody measured it.
+    psf_sigma_px: float | None = None
 
 
 @dataclass(frozen=True)
@@ -357,6 +359,7 @@ def _check_camera(c: _Checker, value: dict) -> None:
         low=8, high=16, low_open=False, high_open=False,
     )  # fmt: skip
     c.number(camera, "response_gamma", "camera.response_gamma", required=False, low=0)
+    c.number(camera, "psf_sigma_px", "camera.psf_sigma_px", required=False, low=0, low_open=False)
 
 
 def _check_frame(c: _Checker, frame: Any, where: str) -> None:
@@ -423,6 +426,7 @@ def build_manifest(value: dict) -> Manifest:
             pixel_size_um=float(cam["pixel_size_um"]),
             bit_depth=int(cam["bit_depth"]),
             response_gamma=float(cam.get("response_gamma", 1.0)),
+            psf_sigma_px=_opt_float(cam.get("psf_sigma_px")),
         ),
         source=Source(polar_deg=polar_deg),
         reference=Reference(reflectance=float(value.get("reference", {}).get("reflectance", 1.0))),

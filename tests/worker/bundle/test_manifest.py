@@ -67,6 +67,7 @@ def test_valid_manifest_has_no_problems_and_defaults_apply(valid_bundle) -> None
     m = build_manifest(manifest)
     assert m.reference.reflectance == 1.0
     assert m.camera.response_gamma == 1.0
+    assert m.camera.psf_sigma_px is None  # absent: unknown, never a default blur
     assert m.scan.face == "obverse" and m.scan.tablet == {"designation": "P123456"}
     dark, first, second = m.frames[:3]
     assert (dark.kind, dark.azimuth_deg, dark.polar_deg, dark.exposure) == ("dark", None, None, 1.0)
@@ -74,6 +75,14 @@ def test_valid_manifest_has_no_problems_and_defaults_apply(valid_bundle) -> None
     assert second.polar_deg == 40.0  # source.polar_deg
     assert [f.index for f in m.frames] == list(range(len(manifest["frames"])))
     assert all(f.target in ("object", "reference") for f in m.frames)
+
+
+@pytest.mark.parametrize("sigma", [0, 0.5, 1.5])
+def test_camera_psf_sigma_is_read_when_given(valid_bundle, sigma) -> None:
+    manifest, _ = valid_bundle()
+    manifest["camera"]["psf_sigma_px"] = sigma
+    assert check_manifest(manifest) == []
+    assert build_manifest(manifest).camera.psf_sigma_px == float(sigma)
 
 
 def test_missing_top_level_fields_are_all_reported() -> None:
@@ -109,6 +118,8 @@ def test_example_message_from_the_issue(valid_bundle) -> None:
         ("camera", "bit_depth", 17, "outside [8, 16]"),
         ("camera", "bit_depth", 12.5, "must be an integer"),
         ("camera", "response_gamma", 0, "outside (0, inf)"),
+        ("camera", "psf_sigma_px", -0.1, "outside [0, inf)"),
+        ("camera", "psf_sigma_px", "0.5", "must be a number"),
         ("source", "polar_deg", 0, "outside (0, 90)"),
         ("source", "polar_deg", 90, "outside (0, 90)"),
         ("source", "polar_deg", [], "must be a number, not a list"),
