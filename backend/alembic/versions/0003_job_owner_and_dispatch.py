@@ -1,0 +1,34 @@
+"""jobs.claimed_by, dispatch_failures, dispatch_after: dead attempts and broker outages
+
+Revision ID: 0003
+Revises: 0002
+Create Date: 2026-11-27 16:30:00
+"""
+
+from collections.abc import Sequence
+
+import sqlalchemy as sa
+from alembic import op
+
+revision: str = "0003"
+down_revision: str | None = "0002"
+branch_labels: str | Sequence[str] | None = None
+depends_on: str | Sequence[str] | None = None
+
+
+def upgrade() -> None:
+    with op.batch_alter_table("jobs", schema=None) as batch_op:
+        batch_op.add_column(sa.Column("claimed_by", sa.String(length=200), nullable=True))
+        batch_op.add_column(
+            sa.Column("dispatch_failures", sa.Integer(), server_default="0", nullable=False)
+        )
+        batch_op.add_column(sa.Column("dispatch_after", sa.DateTime(timezone=True), nullable=True))
+        batch_op.create_index("ix_jobs_dispatch_after", ["dispatch_after"], unique=False)
+
+
+def downgrade() -> None:
+    with op.batch_alter_table("jobs", schema=None) as batch_op:
+        batch_op.drop_index("ix_jobs_dispatch_after")
+        batch_op.drop_column("dispatch_after")
+        batch_op.drop_column("dispatch_failures")
+        batch_op.drop_column("claimed_by")
