@@ -57,8 +57,9 @@ log = logging.getLogger("worker.tasks")
 
 MAX_RETRIES = 5
 PROGRESS_MIN_INTERVAL_S = 0.5
-# Set to a file path: while that file exists a running job waits after its first progress
-# report (heartbeat still beating). For maintenance and for the kill-mid-job tests.
+# Set to a file path: while that file exists a running job waits at each progress report
+# after "starting" (its work folder exists by then; heartbeat still beating). For
+# maintenance and for the kill-mid-job tests.
 PAUSE_FILE_ENV = "HAMMURABI_WORKER_PAUSE_FILE"
 
 
@@ -129,7 +130,8 @@ class _Beat:
         except jobs.JobStateError:
             self.lost.set()
             raise JobLost(f"job {self.job_id} is no longer running") from None
-        _wait_while_paused()
+        if stage != "starting":
+            _wait_while_paused()
 
     def timings(self, timings_s: dict[str, float], stage: str, fraction: float) -> None:
         with capp.session_factory()() as session:

@@ -23,13 +23,32 @@ from backend.tables import Job, JobKind, JobState, Scan, Tablet, Upload
 from backend.uploads import part_path
 
 
-@pytest.fixture
-def factory(tmp_path):
-    url = f"sqlite:///{tmp_path / 'db.sqlite'}"
-    migrate(url)
-    engine = make_engine(url)
-    yield make_sessionmaker(engine)
-    engine.dispose()
+@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
+def factory(request, tmp_path):
+    """A migrated database: a SQLite file, or a fresh PostgreSQL database (loopback)."""
+    if request.param == "sqlite":
+        url, drop = f"sqlite:///{tmp_path / 'db.sqlite'}", None
+    else:
+        import psycopg
+
+        name = f"hammurabi_sweeper_{uuid.uuid4().hex[:12]}"
+        admin = "host=127.0.0.1 port=5432 user=postgres dbname=postgres"
+        with psycopg.connect(admin, autocommit=True) as conn:
+            conn.execute(f'CREATE DATABASE "{name}"')
+        url = f"postgresql+psycopg://postgres@127.0.0.1:5432/{name}"
+
+        def drop():
+            with psycopg.connect(admin, autocommit=True) as conn:
+                conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+
+    try:
+        migrate(url)
+        engine = make_engine(url)
+        yield make_sessionmaker(engine)
+        engine.dispose()
+    finally:
+        if drop is not None:
+            drop()
 
 
 def _job(factory, *, state=JobState.queued, age_s=0.0, beat_age_s=None, kind=JobKind.reconstruct):
