@@ -46,7 +46,7 @@ from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import func, select, update
+from sqlalchemy import exists, func, select, update
 from sqlalchemy.orm import Session
 
 from backend import crud
@@ -54,7 +54,7 @@ from backend import crud
 # Re-exported: the transports live with the broker (backend.queue); callers import them here.
 from backend.queue import CeleryDispatcher, Dispatcher, RecordingDispatcher  # noqa: F401
 from backend.storage import Storage, StorageError
-from backend.tables import Job, JobKind, JobState, Model, Scan
+from backend.tables import Job, JobKind, JobState, Model, Scan, Tablet
 
 log = logging.getLogger("backend.jobs")
 
@@ -176,6 +176,54 @@ def create(
     )
     session.add(job)
     session.flush()
+    return job
+
+
+def _registration_due(session: Session, tablet_id: int) -> bool:
+    """Models of >= 2 faces, no register job queued/running, and a face model it has not seen.
+
+    A registration reads the models when it starts, so it covers the face models created
+    before its latest ``started_at`` (or ``created_at`` if it never started).
+    """
+    face_models = (
+        select(Model.id).join(Scan, Model.scan_id == Scan.id).where(Model.tablet_id == tablet_id)
+    )
+    faces = session.scalar(
+        select(func.count(func.distinct(Scan.face)))
+        .select_from(Model)
+        .join(Scan, Model.scan_id == Scan.id)
+        .where(Model.tablet_id == tablet_id)
+    )
+    if faces < 2:
+        return False
+    register = select(Job).where(Job.tablet_id == tablet_id, Job.kind == JobKind.register)
+    if session.scalar(
+        select(exists(register.where(Job.state.in_([JobState.queued, JobState.running]))))
+    ):
+        return False
+    last = session.scalar(register.order_by(Job.id.desc()).limit(1))
+    if last is None:
+        return True
+    seen_until = last.started_at or last.created_at
+    return bool(session.scalar(select(exists(face_models.where(Model.created_at > seen_until)))))
+
+
+def create_registration_if_due(session: Session, *, tablet_id: int) -> Job | None:
+    """A new queued register job for the tablet if one is due (committed), else None.
+
+    Due: models of two or more faces, no register job queued or running, and a face model
+    newer than the start of the last registration. The tablet row is locked (PostgreSQL) so
+    two faces finishing at once make one job; on SQLite the second writer waits or fails
+    with OperationalError (transient).
+    """
+    if session.get(Tablet, tablet_id, with_for_update=True) is None:
+        session.rollback()
+        return None
+    if not _registration_due(session, tablet_id):
+        session.rollback()
+        return None
+    job = create(session, tablet_id=tablet_id, kind=JobKind.register)
+    session.commit()
     return job
 
 

@@ -42,12 +42,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 from celery.exceptions import SoftTimeLimitExceeded
-from sqlalchemy import exists, func, select
+from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError, OperationalError
 
 from backend import dispatch, jobs, queue, sweeper
 from backend.storage import StorageError, storage_from_settings
-from backend.tables import Job, JobKind, JobState, Model, Scan, Tablet
+from backend.tables import Job, JobKind, JobState, Model, Scan
 from worker import celery_app as capp
 from worker.assets import AssetError
 from worker.assets import derive_assets as write_derived_assets
@@ -319,58 +319,23 @@ def dispatcher() -> queue.Dispatcher:
     return queue.dispatcher_from_settings(capp.settings)
 
 
-def _registration_due(session, tablet_id: int) -> bool:
-    """Models of >= 2 faces, no register job queued/running, and a face model it has not seen.
-
-    A registration reads the models when it starts, so it covers the face models created
-    before its latest ``started_at`` (or ``created_at`` if it never started).
-    """
-    face_models = (
-        select(Model.id).join(Scan, Model.scan_id == Scan.id).where(Model.tablet_id == tablet_id)
-    )
-    faces = session.scalar(
-        select(func.count(func.distinct(Scan.face)))
-        .select_from(Model)
-        .join(Scan, Model.scan_id == Scan.id)
-        .where(Model.tablet_id == tablet_id)
-    )
-    if faces < 2:
-        return False
-    register = select(Job).where(Job.tablet_id == tablet_id, Job.kind == JobKind.register)
-    if session.scalar(
-        select(exists(register.where(Job.state.in_([JobState.queued, JobState.running]))))
-    ):
-        return False
-    last = session.scalar(register.order_by(Job.id.desc()).limit(1))
-    if last is None:
-        return True
-    seen_until = last.started_at or last.created_at
-    return bool(session.scalar(select(exists(face_models.where(Model.created_at > seen_until)))))
-
-
 def schedule_registration(tablet_id: int) -> int | None:
-    """Create and send the tablet's register job if one is due (above); its id, or None.
-
-    The tablet row is locked (PostgreSQL) so two faces finishing at once make one job; on
-    SQLite the second writer fails with OperationalError and is retried. A send that fails
-    leaves the job awaiting dispatch (``backend.dispatch``): the sweeper sends it later.
-    """
+    """Create (``backend.jobs.create_registration_if_due``) and send the tablet's register
+    job if one is due; its id, or None. A send that fails leaves the job awaiting dispatch
+    (``backend.dispatch``): the sweeper sends it later. On SQLite a concurrent writer fails
+    with OperationalError, which the caller retries (transient)."""
     with capp.session_factory()() as session:
-        if session.get(Tablet, tablet_id, with_for_update=True) is None:
+        job = jobs.create_registration_if_due(session, tablet_id=tablet_id)
+        if job is None:
             return None
-        if not _registration_due(session, tablet_id):
-            session.rollback()
-            return None
-        job_id = jobs.create(session, tablet_id=tablet_id, kind=JobKind.register).id
-        session.commit()
         dispatch.dispatch(
             session,
-            job_id=job_id,
+            job_id=job.id,
             dispatcher=dispatcher(),
             backoff_max_s=capp.settings.job_dispatch_backoff_max_s,
         )
-        log.info("tablet %s: register job %s queued", tablet_id, job_id)
-        return job_id
+        log.info("tablet %s: register job %s queued", tablet_id, job.id)
+        return job.id
 
 
 def _follow_up(task, job_id: int) -> None:
