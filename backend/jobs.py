@@ -609,6 +609,11 @@ def _read_report(model_dir: Path) -> dict[str, Any]:
 # -- work folders --------------------------------------------------------------------------
 
 
+def work_root() -> Path:
+    """Where the workers make their work folders (``$TMPDIR`` or the system's temp dir)."""
+    return Path(tempfile.gettempdir())
+
+
 def make_work_folder(root: Path, *, job_id: int, attempt: int, kind: str = "job") -> Path:
     """A fresh folder under ``root`` for one attempt, marked with its owner process."""
     prefix = f"hammurabi-{kind}-{job_id}-a{attempt}-"

@@ -23,7 +23,6 @@ re-send or dispatch first wins a compare-and-set on the job row.
 from __future__ import annotations
 
 import logging
-import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -113,7 +112,7 @@ def sweep(
             requeued_stale.append(job_id)
     if requeued_stale:
         # The dead attempts' work folders on this host go with them (kill -9 leaves them).
-        jobs.remove_dead_work_folders(work_root(), unowned_older_than_s=float("inf"))
+        jobs.remove_dead_work_folders(jobs.work_root(), unowned_older_than_s=float("inf"))
     if requeued_queued or requeued_stale:
         log.warning(
             "sweeper: re-sent lost queued jobs %s and jobs of dead workers %s",
@@ -151,11 +150,6 @@ def maintain(
 def uploads_dir(settings: Any) -> Path:
     """Where the part files of uploads are (``backend.api.uploads`` writes them there)."""
     return Path(settings.data_dir) / "uploads"
-
-
-def work_root() -> Path:
-    """Where the workers make their work folders (``$TMPDIR`` or the system's temp dir)."""
-    return Path(tempfile.gettempdir())
 
 
 class Sweeper:
@@ -201,7 +195,7 @@ class Sweeper:
                     session,
                     uploads_dir=uploads_dir(self.settings),
                     upload_older_than=timedelta(seconds=self.settings.upload_expire_after_s),
-                    work_root=work_root(),
+                    work_root=jobs.work_root(),
                     # No attempt outlives the hard time limit: an unowned folder older than
                     # that (plus a margin) belongs to nobody.
                     unowned_folder_older_than_s=float(self.settings.job_time_limit_s) + 600,

@@ -22,10 +22,10 @@ from celery import Celery, signals
 from sqlalchemy.orm import Session, sessionmaker
 
 from backend.db import make_engine, make_sessionmaker
-from backend.jobs import remove_dead_work_folders
+from backend.jobs import remove_dead_work_folders, work_root
 from backend.queue import celery_config, dispatcher_from_settings
 from backend.settings import Settings, get_settings
-from backend.sweeper import Sweeper, work_root
+from backend.sweeper import Sweeper
 
 log = logging.getLogger("worker.celery_app")
 

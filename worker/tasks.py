@@ -45,7 +45,7 @@ from celery.exceptions import SoftTimeLimitExceeded
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError, OperationalError
 
-from backend import dispatch, jobs, queue, sweeper
+from backend import dispatch, jobs, queue
 from backend.storage import StorageError, storage_from_settings
 from backend.tables import Job, JobKind, JobState, Model, Scan
 from worker import celery_app as capp
@@ -209,9 +209,7 @@ def _reconstruct(beat: _Beat, job: Job) -> str:
         if scan is None:
             raise LookupError(f"job {job.id}: its scan is gone")
         bundle_key = scan.bundle_key
-    work = jobs.make_work_folder(
-        sweeper.work_root(), job_id=job.id, attempt=job.attempts, kind="job"
-    )
+    work = jobs.make_work_folder(jobs.work_root(), job_id=job.id, attempt=job.attempts, kind="job")
     try:
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
@@ -273,7 +271,7 @@ def _derive(beat: _Beat, job: Job) -> str:
             raise LookupError(f"job {job.id}: scan {job.scan_id} has no model yet")
         prefix, model_id = model.storage_prefix, model.id
     work = jobs.make_work_folder(
-        sweeper.work_root(), job_id=job.id, attempt=job.attempts, kind="derive"
+        jobs.work_root(), job_id=job.id, attempt=job.attempts, kind="derive"
     )
     try:
         beat.progress("fetch", 0.1, force=True)

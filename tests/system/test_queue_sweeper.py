@@ -307,7 +307,7 @@ def test_the_sweeper_thread_expires_abandoned_uploads_and_dead_folders_on_its_sc
     uploads_dir.mkdir(parents=True)
     work = tmp_path / "work"
     work.mkdir()
-    monkeypatch.setattr(sweeper, "work_root", lambda: work)
+    monkeypatch.setattr(jobs, "work_root", lambda: work)
     with factory() as session:
         tablet = Tablet(designation="uploads")
         session.add(tablet)
