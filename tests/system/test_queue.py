@@ -5,12 +5,13 @@ a restart loses every message) and the embedded broker (SQLite, no server). One 
 broker, in phases, so the service and workers start once:
 
 1. two workers; job 1 is uploaded and held at its first progress report after "starting"
-   (the pause file);
-   a duplicate message of job 1 is sent: the idle worker finds it running with a live
-   heartbeat and does nothing ('busy'); job 2 is uploaded and taken by the other worker;
-2. one worker is SIGKILLed (its whole process group) while holding a job; the pause is
-   lifted; the survivor finishes its job, its sweeper finds the dead worker's job stale and
-   re-sends it: both jobs succeed, each with exactly one model (one version per job);
+   (the pause file); a duplicate message of job 1 is sent: the idle worker finds it running
+   with a live owner and heartbeat and does nothing ('busy'); job 2 is uploaded and taken by
+   the other worker;
+2. one worker is SIGKILLed (its whole process group) while holding a job; the survivor's
+   sweeper finds that job's process dead and requeues it within seconds (its heartbeat
+   would only be stale after 15 s); the pause is lifted; the survivor finishes both jobs,
+   each with exactly one model (one version per job);
 3. with no worker running, job 3 is queued, then the broker loses its message (Redis
    restarted without persistence / the embedded broker's message rows removed); a new
    worker's sweeper re-sends it at start-up: it succeeds.
@@ -46,10 +47,10 @@ import pytest
 from backend.jobs import RECONSTRUCT_TASK, CeleryDispatcher
 from worker.demo import LocalLibrary, bundle_zip_as_new_scan, free_port
 
-# Short periods so the sweeper acts within seconds (defaults are minutes).
+# Short periods so the sweeper acts within seconds. The heartbeat keeps its defaults (5 s,
+# stale after 15 s): a killed worker's job must be recovered sooner than that, because its
+# process is found dead.
 FAST_SWEEP = {
-    "HAMMURABI_JOB_HEARTBEAT_INTERVAL_S": "1",
-    "HAMMURABI_JOB_STALE_AFTER_S": "3",
     "HAMMURABI_JOB_QUEUED_STALE_AFTER_S": "3",
     "HAMMURABI_JOB_SWEEP_INTERVAL_S": "1",
 }
@@ -175,6 +176,20 @@ def test_jobs_survive_killed_workers_duplicates_and_a_lost_broker(
 
         # Phase 2: SIGKILL one worker mid-job; the other finishes both jobs.
         library.kill_worker(workers[0])
+        t0 = time.monotonic()
+        _wait(
+            lambda: any(
+                r["state"] == "queued" or r["attempts"] >= 2
+                for r in (_job(library, job1), _job(library, job2))
+            ),
+            timeout_s=30,
+            what="the killed worker's job to be requeued",
+        )
+        recovered_s = time.monotonic() - t0
+        assert recovered_s < 10, recovered_s  # sooner than a stale heartbeat (15 s)
+        print(
+            f"\n{broker}: the killed worker's job was requeued {recovered_s:.1f} s after the kill"
+        )
         (tmp_path / "pause").unlink()
         rows = library.wait_jobs([job1, job2], timeout_s=JOB_TIMEOUT_S)
         assert [r["state"] for r in rows] == ["succeeded", "succeeded"], rows
