@@ -11,8 +11,9 @@ Every ``job_sweep_interval_s`` (:func:`sweep`):
   up (the broker lost the message, e.g. Redis restarted without persistence) is re-sent.
 
 Every ``maintenance_interval_s`` (:func:`maintain`): uploads left open for
-``upload_expire_after_s`` are deleted with their part files (``backend.uploads.expire_uploads``)
-and the work folders of dead attempts are removed (``backend.jobs.remove_dead_work_folders``).
+``upload_expire_after_s`` are deleted with their part files (``backend.uploads.expire_uploads``;
+by the service's sweeper only, which holds the part files) and the work folders of dead
+attempts are removed (``backend.jobs.remove_dead_work_folders``).
 
 Schedule: this is a plain loop (:class:`Sweeper`, a daemon thread), not Celery beat, so the
 embedded broker needs nothing more. It runs in every worker process (started when the worker
@@ -131,14 +132,20 @@ class MaintenanceResult:
 def maintain(
     session: Session,
     *,
-    uploads_dir: Path,
+    uploads_dir: Path | None,
     upload_older_than: timedelta,
     work_root: Path,
     unowned_folder_older_than_s: float,
 ) -> MaintenanceResult:
-    """Expire abandoned uploads (committed) and remove the work folders of dead attempts."""
-    expired = uploads.expire_uploads(session, uploads_dir=uploads_dir, older_than=upload_older_than)
-    session.commit()
+    """Expire abandoned uploads (committed; skipped when ``uploads_dir`` is None: only the
+    process that holds the part files expires them) and remove the work folders of dead
+    attempts."""
+    expired = 0
+    if uploads_dir is not None:
+        expired = uploads.expire_uploads(
+            session, uploads_dir=uploads_dir, older_than=upload_older_than
+        )
+        session.commit()
     removed = jobs.remove_dead_work_folders(
         work_root, unowned_older_than_s=unowned_folder_older_than_s
     )
@@ -163,11 +170,15 @@ class Sweeper:
         settings: Any,
         *,
         maintenance: bool = True,
+        expire_uploads: bool = True,
     ):
         self.factory = factory
         self.dispatcher = dispatcher
         self.settings = settings
         self.maintenance = maintenance
+        # The service holds the uploads' part files (<data_dir>/uploads); a worker on another
+        # machine or container must not delete rows whose files it cannot see.
+        self.expire_uploads = expire_uploads
         self.interval_s = float(settings.job_sweep_interval_s)
         self.maintenance_interval_s = float(settings.maintenance_interval_s)
         self._next_maintenance = 0.0
@@ -193,7 +204,7 @@ class Sweeper:
             with self.factory() as session:
                 return maintain(
                     session,
-                    uploads_dir=uploads_dir(self.settings),
+                    uploads_dir=uploads_dir(self.settings) if self.expire_uploads else None,
                     upload_older_than=timedelta(seconds=self.settings.upload_expire_after_s),
                     work_root=jobs.work_root(),
                     # No attempt outlives the hard time limit: an unowned folder older than

@@ -8,8 +8,8 @@ one in ``<data_dir>`` (no server). ``hammurabi worker`` runs this with sensible 
 When the worker is ready it removes the work folders of dead attempts (a previous kill -9)
 and starts the job sweeper (``backend.sweeper.Sweeper``): at once, then every
 ``job_sweep_interval_s`` it sends jobs awaiting dispatch and re-sends jobs the broker lost
-and jobs whose worker died; every ``maintenance_interval_s`` it expires abandoned uploads
-and work folders. A pool process that replaces a killed one also removes dead folders.
+and jobs whose worker died; every ``maintenance_interval_s`` it removes dead work folders
+(abandoned uploads are expired by the service's sweeper, which holds their part files). A pool process that replaces a killed one also removes dead folders.
 """
 
 from __future__ import annotations
@@ -78,7 +78,12 @@ def _start_sweeper(**_kwargs) -> None:
     global _sweeper
     remove_dead_folders()
     if _sweeper is None:
-        _sweeper = Sweeper(session_factory(), dispatcher_from_settings(settings), settings).start()
+        _sweeper = Sweeper(
+            session_factory(),
+            dispatcher_from_settings(settings),
+            settings,
+            expire_uploads=False,  # the service's sweeper does: it holds the part files
+        ).start()
         log.info(
             "job sweeper started (every %.0f s; running jobs stale after %.0f s)",
             settings.job_sweep_interval_s,

@@ -347,3 +347,30 @@ def test_the_sweeper_thread_expires_abandoned_uploads_and_dead_folders_on_its_sc
     assert left.updated_at.replace(tzinfo=UTC) > datetime.now(UTC) - timedelta(seconds=60)
     assert [p.stem for p in uploads_dir.glob("*.part")] == [left.id]
     assert not killed.exists()
+
+
+def test_only_the_services_sweeper_expires_uploads(factory, tmp_path):
+    settings = Settings(data_dir=tmp_path / "data", _env_file=None, upload_expire_after_s=60)
+    sweeper.uploads_dir(settings).mkdir(parents=True)
+    with factory() as session:
+        tablet = Tablet(designation="uploads")
+        session.add(tablet)
+        session.flush()
+        old = datetime.now(UTC) - timedelta(seconds=120)
+        session.add(
+            Upload(
+                id=str(uuid.uuid4()),
+                tablet_id=tablet.id,
+                filename="b.zip",
+                size_bytes=10,
+                created_at=old,
+                updated_at=old,
+            )
+        )
+        session.commit()
+    workers = sweeper.Sweeper(factory, RecordingDispatcher(), settings, expire_uploads=False)
+    assert workers.maintain_once().expired_uploads == 0
+    service = sweeper.Sweeper(factory, RecordingDispatcher(), settings)
+    assert service.maintain_once().expired_uploads == 1
+    with factory() as session:
+        assert session.query(Upload).count() == 0
