@@ -374,3 +374,11 @@ def test_only_the_services_sweeper_expires_uploads(factory, tmp_path):
     assert service.maintain_once().expired_uploads == 1
     with factory() as session:
         assert session.query(Upload).count() == 0
+
+
+def test_a_claim_timeout_shorter_than_two_heartbeats_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="at least two heartbeats"):
+        Settings(data_dir=tmp_path, _env_file=None, job_heartbeat_interval_s=5, job_stale_after_s=9)
+    defaults = Settings(data_dir=tmp_path, _env_file=None)
+    # Recovery in seconds: a dead attempt is taken over after 3 missed heartbeats at most.
+    assert defaults.job_stale_after_s == 3 * defaults.job_heartbeat_interval_s == 15
