@@ -382,3 +382,39 @@ def test_a_claim_timeout_shorter_than_two_heartbeats_is_refused(tmp_path):
     defaults = Settings(data_dir=tmp_path, _env_file=None)
     # Recovery in seconds: a dead attempt is taken over after 3 missed heartbeats at most.
     assert defaults.job_stale_after_s == 3 * defaults.job_heartbeat_interval_s == 15
+
+
+def test_jobs_failed_by_an_old_outage_are_queued_again_by_the_migration(tmp_path):
+    from sqlalchemy import text
+
+    url = f"sqlite:///{tmp_path / 'old.sqlite'}"
+    migrate(url, "0002")
+    engine = make_engine(url)
+    with engine.begin() as conn:
+        conn.execute(
+            text(
+                "INSERT INTO tablets (id, designation, is_public, has_3d, extra, created_at,"
+                " updated_at) VALUES (1, 't', 0, 0, '{}', CURRENT_TIMESTAMP, CURRENT_TIMESTAMP)"
+            )
+        )
+        for job_id, error in ((1, "could not reach the job queue: OperationalError"), (2, "bad")):
+            conn.execute(
+                text(
+                    "INSERT INTO jobs (id, tablet_id, kind, state, progress, timings, error,"
+                    " attempts, created_at, finished_at) VALUES (:id, 1, 'reconstruct',"
+                    " 'failed', 0, '{}', :error, 0, CURRENT_TIMESTAMP, CURRENT_TIMESTAMP)"
+                ),
+                {"id": job_id, "error": error},
+            )
+    migrate(url)
+    factory = make_sessionmaker(engine)
+    with factory() as session:
+        lost, bad = session.get(Job, 1), session.get(Job, 2)
+        assert lost.state == JobState.queued and lost.error is None
+        assert lost.stage == jobs.AWAITING_DISPATCH and lost.finished_at is None
+        assert bad.state == JobState.failed and bad.error == "bad"
+    sent = RecordingDispatcher()
+    with factory() as session:
+        later = datetime.now(UTC) + timedelta(seconds=5)
+        assert dispatch.dispatch_due(session, sent, backoff_max_s=60, now=later) == [1]
+    engine.dispose()

@@ -1,5 +1,8 @@
 """jobs.claimed_by, dispatch_failures, dispatch_after: dead attempts and broker outages
 
+Jobs that older versions failed only because the broker was unreachable ("could not reach
+the job queue") are queued again, awaiting dispatch: the sweeper sends them.
+
 Revision ID: 0003
 Revises: 0002
 Create Date: 2026-11-27 16:30:00
@@ -24,6 +27,12 @@ def upgrade() -> None:
         )
         batch_op.add_column(sa.Column("dispatch_after", sa.DateTime(timezone=True), nullable=True))
         batch_op.create_index("ix_jobs_dispatch_after", ["dispatch_after"], unique=False)
+    op.execute(
+        "UPDATE jobs SET state = 'queued', error = NULL, stage = 'awaiting dispatch', "
+        "finished_at = NULL, enqueued_at = NULL, dispatch_failures = 1, "
+        "dispatch_after = CURRENT_TIMESTAMP "
+        "WHERE state = 'failed' AND error LIKE 'could not reach the job queue%'"
+    )
 
 
 def downgrade() -> None:
