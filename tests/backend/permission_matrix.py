@@ -195,7 +195,7 @@ MATRIX: dict[str, list[Case]] = {
 
 
 def _upload_of_private_a(world, _role):
-    """An open upload (with its preallocated part file) of the private tablet of A."""
+    """An open upload (with its empty part file) of the private tablet of A."""
     from backend import crud, uploads
     from backend.tables import User
 
@@ -207,7 +207,7 @@ def _upload_of_private_a(world, _role):
             filename="scan.zip",
             size_bytes=4,
             uploads_dir=world.settings.data_dir / "uploads",
-            max_bytes=world.settings.upload_max_bytes,
+            limits=uploads.UploadLimits.of(world.settings),
         )
         return {"upload_id": upload.id}
 
