@@ -116,27 +116,6 @@ def create_part_file(path: Path) -> None:
     os.close(fd)
 
 
-def write_at(path: Path, offset: int, data: bytes) -> None:
-    """Write ``data`` at ``offset`` of the part file and make it durable."""
-    try:
-        fd = os.open(path, os.O_WRONLY)
-    except FileNotFoundError:
-        raise ApiError(409, "the upload's data is gone; create a new upload") from None
-    except OSError as exc:
-        raise storage_error_from_os(exc, None) from exc
-    try:
-        view = memoryview(data)
-        while view:
-            written = os.pwrite(fd, view, offset)
-            view = view[written:]
-            offset += written
-        os.fsync(fd)
-    except OSError as exc:
-        raise storage_error_from_os(exc, None) from exc
-    finally:
-        os.close(fd)
-
-
 def sha256_of(path: Path) -> str:
     digest = hashlib.sha256()
     with open(path, "rb") as fh:

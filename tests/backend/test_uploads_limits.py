@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import random
 from datetime import UTC, datetime, timedelta
 
 import pytest
@@ -263,3 +264,19 @@ def test_reused_scan_id_of_a_hidden_scan_reveals_nothing(client, world, dispatch
     detail = response.json()["detail"]
     assert "/scans/" not in detail and f"scan {scan_id}" not in detail
     assert str(world.private_a) not in detail.replace(upload_id, "")
+
+
+def test_new_bytes_matches_counting_byte_by_byte():
+    rng = random.Random(16)
+    for _ in range(300):
+        ranges: list[list[int]] = []
+        for _ in range(rng.randrange(5)):
+            lo = rng.randrange(100)
+            ranges = uploads_mod.merge_range(ranges, lo, lo + rng.randrange(20))
+        start = rng.randrange(110)
+        end = start + rng.randrange(30)
+        covered = {i for lo, hi in ranges for i in range(lo, hi)}
+        expected = sum(1 for i in range(start, end) if i not in covered)
+        assert uploads_mod.new_bytes(ranges, start, end) == expected
+    with pytest.raises(ValueError, match="start <= end"):
+        uploads_mod.new_bytes([], 5, 4)
