@@ -177,6 +177,23 @@ class Budget:
             return None
         return max(0, self.quota_bytes - self.used_bytes)
 
+    def fitting_prefix(self, ranges: list[list[int]], start: int, pos: int, length: int) -> int:
+        """The most bytes of ``[pos, pos + length)`` a chunk that began at ``start`` may write.
+
+        Counts, like the quota, only bytes outside ``ranges``; a binary search, since the new
+        bytes grow monotonically with the length.
+        """
+        if self.quota_bytes is None:
+            return length
+        lo, hi = 0, length
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            if self.used_bytes + new_bytes(ranges, start, pos + mid) <= self.quota_bytes:
+                lo = mid
+            else:
+                hi = mid - 1
+        return lo
+
     def refusal(self, adding_bytes: int, *, where: str) -> ApiError | None:
         """A 413 naming used / quota when ``adding_bytes`` more would pass the quota."""
         if self.quota_bytes is None or self.used_bytes + adding_bytes <= self.quota_bytes:

@@ -213,9 +213,12 @@ async def put_chunk(
 
     async def flush() -> None:
         nonlocal pos, refusal
-        end = pos + len(buffer)
-        refusal = budget.refusal(uploads.new_bytes(known, offset, end), where="offset")
-        if refusal is None:
+        refusal = budget.refusal(
+            uploads.new_bytes(known, offset, pos + len(buffer)), where="offset"
+        )
+        if refusal is not None:  # write what still fits, then stop
+            del buffer[budget.fitting_prefix(known, offset, pos, len(buffer)) :]
+        if buffer:
             try:
                 await run_in_threadpool(
                     uploads.check_free_disk,
@@ -225,9 +228,10 @@ async def put_chunk(
                 )
             except ApiError as exc:
                 refusal = exc
-        if refusal is None:
+                buffer.clear()
+        if buffer:
             await run_in_threadpool(_pwrite_all, fd, bytes(buffer), pos)
-            pos = end
+            pos += len(buffer)
         buffer.clear()
 
     try:

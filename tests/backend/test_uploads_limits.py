@@ -101,7 +101,7 @@ def test_a_body_without_length_is_cut_off_at_the_quota(client, world, app, monke
     monkeypatch.setattr(api_uploads_mod, "WRITE_BUFFER_BYTES", 100)
     limit(app, upload_quota_bytes=1000)
     upload_id = helpers.create(client, world, b"c" * 900).json()["id"]
-    stored_scan(world, world.private_a, 500)  # stored after creation: 500 bytes left
+    stored_scan(world, world.private_a, 470)  # stored after creation: 530 bytes left
 
     # Raw ASGI: 18 pieces of 50 bytes and no Content-Length (TestClient would send one).
     messages = [{"type": "http.request", "body": b"c" * 50, "more_body": True}] * 18
@@ -138,10 +138,11 @@ def test_a_body_without_length_is_cut_off_at_the_quota(client, world, app, monke
     status = next(m["status"] for m in sent if m["type"] == "http.response.start")
     body = b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body")
     assert status == 413, body
-    assert b"500 of 1000 bytes used" in body
-    assert state(client, world, upload_id).json()["ranges"] == [[0, 500]]
+    assert b"470 of 1000 bytes used" in body
+    # Every byte that fits is kept, to the byte (not to the 100-byte write buffer).
+    assert state(client, world, upload_id).json()["ranges"] == [[0, 530]]
     part = app.state.settings.data_dir / "uploads" / f"{upload_id}.part"
-    assert part.read_bytes() == b"c" * 500
+    assert part.read_bytes() == b"c" * 530
 
 
 def test_free_disk_margin(client, world, app):
@@ -280,3 +281,11 @@ def test_new_bytes_matches_counting_byte_by_byte():
         assert uploads_mod.new_bytes(ranges, start, end) == expected
     with pytest.raises(ValueError, match="start <= end"):
         uploads_mod.new_bytes([], 5, 4)
+
+
+def test_fitting_prefix_counts_only_new_bytes():
+    budget = uploads_mod.Budget(institution="institution 'M'", used_bytes=90, quota_bytes=100)
+    # [0, 5) was received before: 10 new bytes fit after it, so 15 of the 20 bytes.
+    assert budget.fitting_prefix([[0, 5]], 0, 0, 20) == 15
+    assert budget.fitting_prefix([], 0, 4, 20) == 6  # 4 new bytes written already
+    assert uploads_mod.Budget(None, 0, None).fitting_prefix([], 0, 0, 7) == 7
