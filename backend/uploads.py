@@ -596,10 +596,12 @@ def expire_uploads(
 
     Deleting the row gives the upload's received bytes back to its institution's quota.
     Also removes part files that no upload row names and that are as old (a crash between
-    creating the file and committing the row). Idempotent and safe to run concurrently
-    (with itself or with chunks arriving): each row is deleted by a conditional DELETE that
-    re-checks state and age, and only the run that deleted it removes its file. Flushes;
-    the caller commits. Returns how many uploads this call deleted.
+    creating the file and committing the row). Idempotent and safe beside chunks arriving
+    and beside another sweep: each row is deleted by a conditional DELETE that re-checks
+    state and age, and only the run that deleted it removes its file (on PostgreSQL a
+    concurrent sweep waits for the row lock and then deletes nothing; SQLite serialises
+    writers, so the later sweep fails with "database is locked"). Flushes; the caller
+    commits. Returns how many uploads this call deleted.
     """
     if older_than.total_seconds() <= 0:
         raise ValueError(f"older_than must be positive, got {older_than}")

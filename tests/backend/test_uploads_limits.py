@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import os
 import random
+import threading
 from datetime import UTC, datetime, timedelta
 
 import pytest
@@ -289,3 +290,37 @@ def test_fitting_prefix_counts_only_new_bytes():
     assert budget.fitting_prefix([[0, 5]], 0, 0, 20) == 15
     assert budget.fitting_prefix([], 0, 4, 20) == 6  # 4 new bytes written already
     assert uploads_mod.Budget(None, 0, None).fitting_prefix([], 0, 0, 7) == 7
+
+
+def test_two_sweeps_at_once_delete_each_upload_once(client, world, app, db_url):
+    """PostgreSQL: the second sweep waits on the first's row lock, then deletes nothing.
+
+    (SQLite serialises writers: there the later sweep fails with "database is locked" and
+    deletes nothing either; it simply runs again next time.)
+    """
+    if not db_url.startswith("postgresql"):
+        pytest.skip("row locks between two sweeps: PostgreSQL only")
+    uploads_dir = app.state.settings.data_dir / "uploads"
+    stale = helpers.create(client, world, b"s" * 10).json()["id"]
+    with world.session() as session:
+        session.get(Upload, stale).updated_at = datetime.now(UTC) - timedelta(days=8)
+    factory, week, counts = app.state.sessionmaker, timedelta(days=7), {}
+
+    def sweep(name):
+        with factory() as session:
+            counts[name] = uploads_mod.expire_uploads(
+                session, uploads_dir=uploads_dir, older_than=week
+            )
+            session.commit()
+
+    first = factory()
+    counts["first"] = uploads_mod.expire_uploads(first, uploads_dir=uploads_dir, older_than=week)
+    second = threading.Thread(target=sweep, args=("second",))
+    second.start()
+    second.join(timeout=0.5)
+    assert second.is_alive()  # waiting for the first sweep's lock
+    first.commit()
+    first.close()
+    second.join(timeout=30)
+    assert counts == {"first": 1, "second": 0}
+    assert not (uploads_dir / f"{stale}.part").exists()
