@@ -9,7 +9,7 @@ The one module that knows how each database does full-text search:
 
 Query text is cut into word tokens (``\\w+``); every token must match as a word prefix
 (``vat 152`` finds "VAT 15259"), regardless of case and diacritics on both databases
-("puzris" finds "Puzriš"). Searched columns (migration 0003_search): designation, P-number,
+("puzris" finds "Puzriš"). Searched columns (migration 0004_search): designation, P-number,
 museum number, excavation number, primary publication, notes, period, genre, subgenre,
 provenience, language and collection, so "Ur III" finds the Ur III tablets.
 

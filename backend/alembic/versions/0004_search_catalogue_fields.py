@@ -1,8 +1,8 @@
 """free-text search also over period, genre, subgenre, provenience, language and collection,
 regardless of diacritics on PostgreSQL too
 
-Revision ID: 0003_search
-Revises: 0002
+Revision ID: 0004_search
+Revises: 0003_p_number
 Create Date: 2026-11-27 16:30:00
 
 Scholars type "Ur III" or "Puzris-Dagan" into the search box: the catalogue's period and
@@ -17,8 +17,8 @@ from collections.abc import Sequence
 
 from alembic import op
 
-revision: str = "0003_search"
-down_revision: str | None = "0002"
+revision: str = "0004_search"
+down_revision: str | None = "0003_p_number"
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
