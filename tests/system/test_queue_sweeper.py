@@ -388,7 +388,7 @@ def test_jobs_failed_by_an_old_outage_are_queued_again_by_the_migration(tmp_path
     from sqlalchemy import text
 
     url = f"sqlite:///{tmp_path / 'old.sqlite'}"
-    migrate(url, "0002")
+    migrate(url, "0004_search")
     engine = make_engine(url)
     with engine.begin() as conn:
         conn.execute(

@@ -3,8 +3,8 @@
 Jobs that older versions failed only because the broker was unreachable ("could not reach
 the job queue") are queued again, awaiting dispatch: the sweeper sends them.
 
-Revision ID: 0003
-Revises: 0002
+Revision ID: 0005_job_dispatch
+Revises: 0004_search
 Create Date: 2026-11-27 16:30:00
 """
 
@@ -13,8 +13,8 @@ from collections.abc import Sequence
 import sqlalchemy as sa
 from alembic import op
 
-revision: str = "0003"
-down_revision: str | None = "0002"
+revision: str = "0005_job_dispatch"
+down_revision: str | None = "0004_search"
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
