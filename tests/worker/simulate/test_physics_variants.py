@@ -466,3 +466,22 @@ def test_the_spec_phase_relation_survives_the_projector_and_clay(name):
     left, right = delta[:, 2 : w // 2 - 6], delta[:, w // 2 + 6 : -2]
     assert np.abs(left.mean(axis=0)).max() < 0.01
     assert np.abs(right.mean(axis=0) - expected).max() < 0.01
+
+
+def test_rays_through_a_break_see_the_tablet_or_nothing():
+    """Rays that cross the whole broken-off part leave its cavity behind the tablet: they
+    must miss, not stop there (seen as clay facing away from the camera, 6 mm deep)."""
+    from worker.simulate.tablet import FACE_POSES
+    from worker.simulate.view import render_view
+
+    tablet = make_tablet(2, shape="broken")
+    view = render_view(
+        tablet,
+        FACE_POSES["obverse"],
+        width=100,
+        height=80,
+        pixel_size_um=200.0,
+        supersample=2,
+        centre_um=(-4000.0, -3000.0),
+    )
+    assert (view.normals_ss[view.tablet_ss][:, 2] < 0).all()
