@@ -124,6 +124,10 @@ def test_bad_physics_is_refused_with_the_field_named():
         Physics(support="table")
     with pytest.raises(ValueError, match="unknown fields"):
         physics_from_dict({"psf": 1.0})
+    with pytest.raises(ValueError, match="physics"):
+        physics_from_dict({"veil": "a lot"})
+    assert IDEAL.is_ideal and Physics(name="other").is_ideal
+    assert not PHYSICS_VARIANTS["psf"].is_ideal
     with pytest.raises(ValueError, match="physics_seed"):
         resolve_physics("random", None)
     with pytest.raises(ValueError, match="unknown"):
