@@ -1,0 +1,483 @@
+"""A whole scan rendered by Mitsuba 3: the bundle and ground truth of ``worker.simulate``.
+
+Only the light transport differs from the native simulator: the same tablet and view
+(``render_view`` / ``render_mesh_view``), the same instrument (``scan_rig``: irradiance
+fields E, fringe phase offsets δ₀, channel gains, fixed pattern), the same frame plan
+(``plan_frames``) and the same camera (``encode_frame``). Shading, cast shadows,
+highlights and interreflections come from Mitsuba's path tracer on a triangle mesh of the
+surface with a rough-plastic (or diffuse) clay BSDF; the camera PSF is the film's filter.
+
+Light is linear in the emitted radiance, so one render per fringe component serves every
+phase step: with the texture E·(1 + m·cos(a + δ)) = E + m·(cos δ·E cos a - sin δ·E sin a)
+and E cos a = 2·E(1 + cos a)/2 - E, three non-negative textures E, E(1 + cos a)/2 and
+E(1 + sin a)/2 per (azimuth, period) give the four frames (``rig._fringe_terms`` does the
+same). Renders of one light direction share their random numbers, so the Monte Carlo
+error is one realisation per direction and the four phases stay consistent.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from worker.bundle import write_bundle
+from worker.durable import npy_bytes, replace_dir_atomic, write_new_file
+from worker.simulate.acquisition import (
+    PHASES_DEG,
+    PRESETS,
+    Preset,
+    frame_file,
+    manifest,
+    pixel_size_for,
+    plan_frames,
+)
+from worker.simulate.meshview import MeshTablet, load_mesh, render_mesh_view
+from worker.simulate.mitsuba.backend import load_mitsuba
+from worker.simulate.mitsuba.scene import (
+    DISTANCE_MM,
+    collimated_source,
+    heightfield_mesh,
+    projector_dict,
+    sensor_dict,
+    write_ply,
+)
+from worker.simulate.noise import NoiseModel, encode_frame, noise_model
+from worker.simulate.rig import CHANNELS, FrameSpec
+from worker.simulate.scan import SimulationResult, scan_rig, wedge_records
+from worker.simulate.tablet import FACE_POSES, FACES, make_tablet
+from worker.simulate.view import BACKGROUND_REFLECTANCE, View, render_view
+
+__all__ = ["Clay", "draw_clay", "render_scan_mitsuba"]
+
+BSDFS = ("roughplastic", "diffuse")
+
+
+@dataclass(frozen=True)
+class Clay:
+    """The clay's BSDF. ``roughplastic``: Mitsuba's dielectric coating (index ``int_ior``,
+    GGX roughness ``alpha``, specular lobe scaled by ``specular``) over a diffuse base whose
+    reflectance is the albedo texture; ``diffuse``: Lambertian with the albedo texture."""
+
+    model: str = "roughplastic"
+    alpha: float = 0.3
+    specular: float = 0.5
+    int_ior: float = 1.5
+
+    def __post_init__(self) -> None:
+        if self.model not in BSDFS:
+            raise ValueError(f"clay: model must be one of {BSDFS}, got {self.model!r}")
+        if not 0.001 <= self.alpha <= 1.0:
+            raise ValueError(f"clay: alpha must be in [0.001, 1], got {self.alpha}")
+        if not 0.0 <= self.specular <= 1.0:
+            raise ValueError(f"clay: specular must be in [0, 1], got {self.specular}")
+        if not 1.0 < self.int_ior <= 3.0:
+            raise ValueError(f"clay: int_ior must be in (1, 3], got {self.int_ior}")
+
+    def bsdf(self, albedo_texture: dict, *, twosided: bool) -> dict:
+        if self.model == "diffuse":
+            out = {"type": "diffuse", "reflectance": albedo_texture}
+        else:
+            out = {
+                "type": "roughplastic",
+                "distribution": "ggx",
+                "alpha": self.alpha,
+                "int_ior": self.int_ior,
+                "specular_reflectance": {"type": "rgb", "value": [self.specular] * 3},
+                "diffuse_reflectance": albedo_texture,
+                "nonlinear": False,
+            }
+        return {"type": "twosided", "bsdf": out} if twosided else out
+
+
+def draw_clay(seed: int) -> Clay:
+    """A rough-plastic clay drawn from ``seed``: roughness 0.1–0.5, specular scale 0.1–1."""
+    rng = np.random.default_rng([seed, 0xC1A7])
+    return Clay("roughplastic", float(rng.uniform(0.1, 0.5)), float(rng.uniform(0.1, 1.0)))
+
+
+def _first_hits(mi, variant: str, scene, x_mm: np.ndarray, y_mm: np.ndarray, z0_mm: float):
+    """Mitsuba's first intersection along +z from (x, y, z0): t (mm, inf: none), normals (N, 3)."""
+    n = x_mm.size
+    if variant.startswith("scalar"):
+        t = np.full(n, np.inf)
+        normals = np.full((n, 3), np.nan)
+        for i in range(n):
+            ray = mi.Ray3f(mi.Point3f(float(x_mm[i]), float(y_mm[i]), z0_mm), mi.Vector3f(0, 0, 1))
+            si = scene.ray_intersect(ray)
+            if si.is_valid():
+                t[i] = si.t
+                normals[i] = (si.n[0], si.n[1], si.n[2])
+        return t, normals
+    origin = mi.Point3f(
+        mi.Float(x_mm.astype(np.float32)),
+        mi.Float(y_mm.astype(np.float32)),
+        mi.Float(np.full(n, z0_mm, np.float32)),
+    )
+    si = scene.ray_intersect(mi.Ray3f(origin, mi.Vector3f(0, 0, 1)))
+    valid = np.array(si.is_valid(), bool)
+    t = np.where(valid, np.array(si.t, float), np.inf)
+    normals = np.array(si.n, float)
+    if normals.shape == (3, n):
+        normals = normals.T
+    normals[~valid] = np.nan
+    return t, normals
+
+
+def _ground_truth(
+    mi, variant: str, scene, view: View, z0_mm: float, support_h_um: float
+) -> dict[str, np.ndarray]:
+    """Point samples at the pixel centres by Mitsuba's ray intersection (SCAN_BUNDLE.md:
+    the height, normal and reflectance of the surface point seen at p = (c·s, r·s)).
+
+    Mask: the hit lies above the support and the pixel's supersamples all see the tablet
+    (the native rule), so pixels on the walls of the silhouette stay out.
+    """
+    w, h, s = view.width, view.height, view.pixel_size_um
+    gx, gy = np.meshgrid(np.arange(w) * s / 1000.0, np.arange(h) * s / 1000.0)
+    t, normals = _first_hits(mi, variant, scene, gx.ravel(), gy.ravel(), z0_mm)
+    height = (-(z0_mm + t) * 1000.0).reshape(h, w)
+    normals = normals.reshape(h, w, 3)
+    normals *= np.where(normals[..., 2:] > 0, -1.0, 1.0)  # the side facing the camera
+    native = view.ground_truth()
+    mask = native["mask"] & np.isfinite(height) & (height > support_h_um + 1.0)
+    height = np.where(mask, height, np.nan).astype(np.float32)
+    normals = np.where(mask[..., None], normals, np.nan).astype(np.float32)
+    albedo = np.where(mask[..., None], native["albedo"], np.nan).astype(np.float32)
+    return {"height": height, "normals": normals, "albedo": albedo, "mask": mask}
+
+
+def _resolve_preset(preset: str | Preset) -> Preset:
+    if isinstance(preset, Preset):
+        return preset
+    if preset not in PRESETS:
+        raise ValueError(f"preset: unknown {preset!r}; choose from {sorted(PRESETS)}")
+    return PRESETS[preset]
+
+
+def _check_args(face: str, spp: int, max_depth: int, pose) -> np.ndarray | None:
+    labels = [*FACES, "other"] if pose is not None else list(FACES)
+    if face == "all":
+        raise ValueError("face: the mitsuba renderer renders one face at a time, not 'all'")
+    if face not in labels:
+        raise ValueError(f"face: unknown {face!r}; choose from {labels}")
+    if not 1 <= spp <= 1 << 16:
+        raise ValueError(f"spp: samples per pixel must be 1..65536, got {spp}")
+    if not 2 <= max_depth <= 64:
+        raise ValueError(f"max_depth: must be 2..64 (2 = direct light only), got {max_depth}")
+    if pose is None:
+        return None
+    pose = np.asarray(pose, dtype=float)
+    if pose.shape != (3, 3) or not np.allclose(pose @ pose.T, np.eye(3), atol=1e-6):
+        raise ValueError("pose: must be a 3×3 rotation matrix")
+    return pose
+
+
+def _light_groups(frames: list[FrameSpec]) -> dict[tuple, list[int]]:
+    """Frame indices per light: (target, source, azimuth, polar); darks are left out."""
+    groups: dict[tuple, list[int]] = {}
+    for i, f in enumerate(frames):
+        if f.kind == "dark":
+            continue
+        source = "projector" if f.kind == "fringe" else "lamp"
+        key = (f.target, source, round(f.azimuth_deg % 360, 6), round(f.polar_deg, 6))
+        groups.setdefault(key, []).append(i)
+    return groups
+
+
+def render_scan_mitsuba(
+    out_dir: str | os.PathLike,
+    *,
+    seed: int = 0,
+    size: tuple[int, int] | None = None,
+    face: str = "obverse",
+    preset: str | Preset = "quick",
+    noise: str | NoiseModel = "default",
+    mesh: str | os.PathLike | None = None,
+    pose: np.ndarray | None = None,
+    spp: int = 32,
+    max_depth: int = 3,
+    clay: Clay | None = None,
+    variant: str = "auto",
+    as_zip: bool = False,
+    progress: bool = False,
+) -> SimulationResult:
+    """Render the scan of one face of the synthetic tablet of ``seed`` (or of the mesh file
+    ``mesh``, mm, obverse toward -z) with Mitsuba 3 into ``out_dir``/bundle and /gt.
+
+    ``spp`` samples per pixel, ``max_depth`` path length (3: one interreflection bounce),
+    ``clay`` the BSDF (default: drawn from ``seed``), ``variant`` ``auto`` (llvm_ad_rgb when
+    a libLLVM >= 17 exists, else scalar_rgb), ``llvm_ad_rgb`` or ``scalar_rgb``.
+    Raises ValueError on bad arguments, FileExistsError before overwriting,
+    MitsubaUnavailable when Mitsuba cannot run.
+    """
+    from tqdm import tqdm
+
+    pose = _check_args(face, spp, max_depth, pose)
+    plan = _resolve_preset(preset)
+    model = noise if isinstance(noise, NoiseModel) else noise_model(noise)
+    clay = clay if clay is not None else draw_clay(seed)
+    width, height = size or (plan.width, plan.height)
+    out = Path(out_dir)
+    for name in ("bundle", "bundle.zip", "gt"):
+        if (out / name).exists():
+            raise FileExistsError(f"out: {out / name} exists; choose an empty --out")
+    mi, variant = load_mitsuba(variant)
+
+    tablet = load_mesh(mesh) if mesh is not None else make_tablet(seed)
+    pose = FACE_POSES[face] if pose is None else pose
+    pixel = pixel_size_for(width, height)
+    render = render_mesh_view if isinstance(tablet, MeshTablet) else render_view
+    view = render(
+        tablet, pose, width=width, height=height, pixel_size_um=pixel, supersample=plan.supersample
+    )
+    rig = scan_rig(seed, width, height, pixel, model)
+    frames = plan_frames(
+        plan,
+        width=width,
+        height=height,
+        pixel_size_um=pixel,
+        noise=model,
+        rng=np.random.default_rng([seed, 0xE0]),
+    )
+    h_ss = view.height_ss_um
+    h_tab = h_ss[view.tablet_ss]
+    support_h = float(h_ss[~view.tablet_ss].max()) if (~view.tablet_ss).any() else None
+    if support_h is None:
+        support_h = float(h_tab.min()) - 3000.0
+    fringe_periods = [f.period_um for f in frames if f.kind == "fringe"]
+    if fringe_periods:
+        need = 2 * np.tan(np.radians(plan.polar_deg)) * float(np.max(np.abs(h_tab)))
+        coarsest = min(
+            max(f.period_um for f in frames if f.kind == "fringe" and f.azimuth_deg == az)
+            for az in {f.azimuth_deg for f in frames if f.kind == "fringe"}
+        )
+        if coarsest <= need:
+            raise ValueError(
+                f"coarsest fringe period {coarsest:.0f} µm does not exceed 2·tanθ·max|h| = {need:.0f} µm"
+            )
+
+    s_mm = pixel / 1000.0
+    z_cam = -(float(h_ss.max()) / 1000.0 + 10.0)  # the sensor plane, in front of everything
+    reach_um = (float(np.max(np.abs(h_ss))) + 1000.0) * np.tan(np.radians(plan.polar_deg))
+    bounds_um = (
+        -0.5 * pixel - reach_um,
+        (width - 0.5) * pixel + reach_um,
+        -0.5 * pixel - reach_um,
+        (height - 0.5) * pixel + reach_um,
+    )
+    albedo_tex = {
+        "type": "bitmap",
+        "bitmap": mi.Bitmap(np.ascontiguousarray(view.albedo_ss, dtype=np.float32)),
+        "raw": True,
+        "filter_type": "bilinear",
+        "wrap_mode": "clamp",
+    }
+    face_id = [*FACES, "other"].index(face)
+    images: dict[str, np.ndarray] = {}
+    files = [frame_file(f, i) for i, f in enumerate(frames)]
+    offset = rig.offset_e((height, width), model)
+
+    with tempfile.TemporaryDirectory(prefix="mitsuba-scan-") as tmp:
+        ply = Path(tmp) / "tablet.ply"
+        shapes: dict = {}
+        if isinstance(tablet, MeshTablet):
+            verts = (tablet.vertices_um @ view.pose.T + view.translation_um) / 1000.0
+            uv = np.stack(
+                [
+                    (verts[:, 0] + s_mm / 2) / (width * s_mm),
+                    (verts[:, 1] + s_mm / 2) / (height * s_mm),
+                ],
+                -1,
+            )
+            write_ply(ply, verts, tablet.faces, uv)
+            shapes["tablet"] = {
+                "type": "ply",
+                "filename": str(ply),
+                "face_normals": True,
+                "bsdf": clay.bsdf(albedo_tex, twosided=True),
+            }
+            x0, x1, y0, y1 = (v / 1000.0 for v in bounds_um)
+            shapes["support"] = {
+                "type": "rectangle",
+                "to_world": mi.ScalarTransform4f()
+                .translate([(x0 + x1) / 2, (y0 + y1) / 2, -support_h / 1000.0])
+                .scale([(x1 - x0) / 2, (y1 - y0) / 2, 1.0])
+                @ mi.ScalarTransform4f().rotate([1, 0, 0], 180.0),
+                "bsdf": {
+                    "type": "diffuse",
+                    "reflectance": {"type": "rgb", "value": BACKGROUND_REFLECTANCE},
+                },
+            }
+        else:
+            verts, faces, uv = heightfield_mesh(h_ss, pixel, view.supersample)
+            write_ply(ply, verts, faces, uv)
+            shapes["tablet"] = {
+                "type": "ply",
+                "filename": str(ply),
+                "face_normals": True,
+                "bsdf": clay.bsdf(albedo_tex, twosided=False),
+            }
+        x0, x1, y0, y1 = (v / 1000.0 for v in bounds_um)
+        reference_shapes = {
+            "target": {
+                "type": "rectangle",
+                "to_world": mi.ScalarTransform4f()
+                .translate([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
+                .scale([(x1 - x0) / 2, (y1 - y0) / 2, 1.0])
+                @ mi.ScalarTransform4f().rotate([1, 0, 0], 180.0),
+                "bsdf": {
+                    "type": "diffuse",
+                    "reflectance": {"type": "rgb", "value": rig.reflectance_reference},
+                },
+            }
+        }
+        sensor = sensor_dict(mi, width, height, pixel, model.blur_sigma_px, spp, z_cam)
+        integrator = {"type": "path", "max_depth": int(max_depth)}
+
+        def scene_dict(target: str, emitter: dict | None) -> dict:
+            d = {"type": "scene", "integrator": integrator, "sensor": sensor}
+            d.update(shapes if target == "object" else reference_shapes)
+            if emitter is not None:
+                d["emitter"] = emitter
+            return d
+
+        gt = _ground_truth(
+            mi, variant, mi.load_dict(scene_dict("object", None)), view, z_cam, support_h
+        )
+
+        groups = _light_groups(frames)
+        n_renders = sum(
+            1 + 2 * len({round(frames[i].period_um, 6) for i in idx})
+            if key[1] == "projector"
+            else 1
+            for key, idx in groups.items()
+        )
+        bar = tqdm(
+            total=n_renders,
+            desc=f"{face} mitsuba renders",
+            unit="render",
+            file=sys.stderr,
+            disable=not progress,
+        )
+        radiance: dict[int, np.ndarray] = {}
+        for g, (key, idx) in enumerate(groups.items()):
+            target, source_kind, az, polar = key
+            periods = sorted({frames[i].period_um for i in idx if frames[i].kind == "fringe"})
+            src = collimated_source(
+                az, polar, bounds_um, finest_period_um=min(periods) if periods else None
+            )
+            px, py = src.points_um[..., 0], src.points_um[..., 1]
+            irr = rig.irradiance(source_kind, az, polar, px, py)
+            emitter = projector_dict(mi, src, irr, rig.source_radiance)
+            scene_g = mi.load_dict(scene_dict(target, emitter))
+            render_seed = int(np.random.default_rng([seed, face_id, 0x5EED, g]).integers(1 << 31))
+
+            def render_texture(texture: np.ndarray | None, scene_g=scene_g, seed_=render_seed):
+                if texture is not None:
+                    params = mi.traverse(scene_g)
+                    params["emitter.irradiance.data"] = mi.TensorXf(
+                        np.ascontiguousarray(texture, np.float32)[..., None]
+                    )
+                    params.update()
+                img = np.array(mi.render(scene_g, seed=seed_, spp=spp), dtype=np.float64)
+                bar.update(1)
+                return img
+
+            base = render_texture(None)
+            if source_kind == "lamp":
+                for i in idx:
+                    f = frames[i]
+                    if f.kind == "color":
+                        c = CHANNELS.index(f.channel)
+                        radiance[i] = base[..., c] * rig.channel_gain[c]
+                    else:
+                        radiance[i] = base.mean(axis=-1)
+                continue
+            b = base.mean(axis=-1)
+            ux, uy = np.sin(np.radians(az)), np.cos(np.radians(az))
+            arg = 2 * np.pi * (px * ux + py * uy)
+            for period in periods:
+                a = arg / period
+                c2 = 2 * render_texture(irr * (1 + np.cos(a)) / 2).mean(axis=-1) - b
+                s2 = 2 * render_texture(irr * (1 + np.sin(a)) / 2).mean(axis=-1) - b
+                for i in idx:
+                    f = frames[i]
+                    if f.period_um != period:
+                        continue
+                    delta = np.radians(f.phase_deg) + rig.phase_offset(az, polar, period)
+                    radiance[i] = b + model.fringe_modulation * (
+                        np.cos(delta) * c2 - np.sin(delta) * s2
+                    )
+        bar.close()
+
+    for i, (frame, file) in enumerate(zip(frames, files, strict=True)):
+        lit = radiance.get(i)
+        rad = np.zeros((height, width)) if lit is None else lit + model.stray_light
+        rng = np.random.default_rng([seed, face_id, i])
+        images[file] = encode_frame(
+            rad, noise=model, exposure=frame.exposure, offset_e=offset, rng=rng
+        )
+    doc = manifest(
+        frames,
+        files,
+        face=face,
+        pose=pose,
+        seed=seed,
+        width=width,
+        height=height,
+        pixel_size_um=pixel,
+        noise=model,
+        polar_deg=plan.polar_deg,
+        reflectance=rig.reflectance_reference,
+    )
+    doc["scan"]["id"] += "-mitsuba"
+    doc["scan"]["tablet"]["simulator"] = "worker.simulate.mitsuba"
+    out.mkdir(parents=True, exist_ok=True)
+    bundle = out / ("bundle.zip" if as_zip else "bundle")
+    write_bundle(bundle, doc, images, as_zip=as_zip)
+    physics = {
+        "renderer": "mitsuba",
+        "mitsuba_version": mi.__version__,
+        "variant": variant,
+        "integrator": {"type": "path", "max_depth": max_depth},
+        "spp": spp,
+        "clay": asdict(clay),
+        "clay_note": "albedo.npy is the BSDF's diffuse (base) reflectance; under the "
+        "roughplastic coating the light leaving the base is further weighted by Fresnel "
+        "transmittance in and out (Mitsuba's roughplastic, nonlinear=false)",
+        "geometry": "mesh file"
+        if isinstance(tablet, MeshTablet)
+        else "height field mesh of "
+        f"the ray-cast view, {view.supersample}x{view.supersample} vertices per pixel",
+        "support": {"reflectance": BACKGROUND_REFLECTANCE, "height_um": support_h},
+        "sources": {
+            "type": "projector (collimated)",
+            "distance_mm": DISTANCE_MM,
+            "fringe_modulation": model.fringe_modulation,
+            "irradiance_variation": model.irradiance_variation,
+        },
+        "camera": {
+            "psf_sigma_px": model.blur_sigma_px,
+            "film_filter": "gaussian" if model.blur_sigma_px > 0 else "box",
+            "noise": asdict(model),
+        },
+        "reference_reflectance": rig.reflectance_reference,
+        "phases_deg": list(PHASES_DEG),
+    }
+
+    def fill(tmp_dir: Path) -> None:
+        for name in ("height", "normals", "albedo", "mask"):
+            write_new_file(tmp_dir / f"{name}.npy", npy_bytes(gt[name]))
+        wedges = json.dumps({"wedges": wedge_records(tablet, view)}, indent=1)
+        write_new_file(tmp_dir / "wedges.json", wedges.encode())
+        write_new_file(tmp_dir / "physics.json", json.dumps(physics, indent=1).encode())
+
+    gt_dir = out / "gt"
+    replace_dir_atomic(gt_dir, fill)
+    return SimulationResult(out, {face: bundle}, {face: gt_dir}, {face: view}, len(frames))
