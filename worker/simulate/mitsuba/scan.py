@@ -178,6 +178,10 @@ def _check_args(face: str, spp: int, max_depth: int, pose) -> np.ndarray | None:
     return pose
 
 
+def _key_ints(*values: float) -> list[int]:
+    return [int(round(v * 1000)) % (1 << 62) for v in values]
+
+
 def _light_groups(frames: list[FrameSpec]) -> dict[tuple, list[int]]:
     """Frame indices per light: (target, source, azimuth, polar); darks are left out."""
     groups: dict[tuple, list[int]] = {}
@@ -366,7 +370,7 @@ def render_scan_mitsuba(
             disable=not progress,
         )
         radiance: dict[int, np.ndarray] = {}
-        for g, (key, idx) in enumerate(groups.items()):
+        for key, idx in groups.items():
             target, source_kind, az, polar = key
             periods = sorted({frames[i].period_um for i in idx if frames[i].kind == "fringe"})
             src = collimated_source(
@@ -376,7 +380,12 @@ def render_scan_mitsuba(
             irr = rig.irradiance(source_kind, az, polar, px, py)
             emitter = projector_dict(mi, src, irr, rig.source_radiance)
             scene_g = mi.load_dict(scene_dict(target, emitter))
-            render_seed = int(np.random.default_rng([seed, face_id, 0x5EED, g]).integers(1 << 31))
+            # One seed per light, whatever the target: object and reference pixels then
+            # integrate over the same sub-pixel positions, as a real pixel does.
+            light_id = [source_kind == "projector", *_key_ints(az, polar)]
+            render_seed = int(
+                np.random.default_rng([seed, face_id, 0x5EED, *light_id]).integers(1 << 31)
+            )
 
             def render_texture(texture: np.ndarray | None, scene_g=scene_g, seed_=render_seed):
                 if texture is not None:
