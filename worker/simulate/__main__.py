@@ -42,7 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="native",
         help="light transport: our forward model, or Mitsuba 3's path tracer (docs/simulator.md)",
     )
-    p.add_argument("--spp", type=int, default=None, help="mitsuba: samples per pixel (32)")
+    p.add_argument("--spp", type=int, default=None, help="mitsuba: samples per pixel (16)")
     p.add_argument(
         "--max-depth", type=int, default=None, help="mitsuba: path length (3: one bounce)"
     )
@@ -61,7 +61,7 @@ def _render_mitsuba(args: argparse.Namespace):
             preset=args.preset,
             noise=args.noise,
             mesh=args.mesh,
-            spp=32 if args.spp is None else args.spp,
+            spp=16 if args.spp is None else args.spp,
             max_depth=3 if args.max_depth is None else args.max_depth,
             as_zip=args.zip,
             progress=True,

@@ -204,10 +204,11 @@ def render_scan_mitsuba(
     noise: str | NoiseModel = "default",
     mesh: str | os.PathLike | None = None,
     pose: np.ndarray | None = None,
-    spp: int = 32,
+    spp: int = 16,
     max_depth: int = 3,
     clay: Clay | None = None,
     variant: str = "auto",
+    mc_seed: int = 0,
     as_zip: bool = False,
     progress: bool = False,
 ) -> SimulationResult:
@@ -216,7 +217,8 @@ def render_scan_mitsuba(
 
     ``spp`` samples per pixel, ``max_depth`` path length (3: one interreflection bounce),
     ``clay`` the BSDF (default: drawn from ``seed``), ``variant`` ``auto`` (llvm_ad_rgb when
-    a libLLVM >= 17 exists, else scalar_rgb), ``llvm_ad_rgb`` or ``scalar_rgb``.
+    a libLLVM >= 17 exists, else scalar_rgb), ``llvm_ad_rgb`` or ``scalar_rgb``;
+    ``mc_seed`` changes only the renderer's random numbers (to measure its noise).
     Raises ValueError on bad arguments, FileExistsError before overwriting,
     MitsubaUnavailable when Mitsuba cannot run.
     """
@@ -384,7 +386,7 @@ def render_scan_mitsuba(
             # integrate over the same sub-pixel positions, as a real pixel does.
             light_id = [source_kind == "projector", *_key_ints(az, polar)]
             render_seed = int(
-                np.random.default_rng([seed, face_id, 0x5EED, *light_id]).integers(1 << 31)
+                np.random.default_rng([seed, face_id, 0x5EED, mc_seed, *light_id]).integers(1 << 31)
             )
 
             def render_texture(texture: np.ndarray | None, scene_g=scene_g, seed_=render_seed):
@@ -456,6 +458,7 @@ def render_scan_mitsuba(
         "variant": variant,
         "integrator": {"type": "path", "max_depth": max_depth},
         "spp": spp,
+        "mc_seed": mc_seed,
         "clay": asdict(clay),
         "clay_note": "albedo.npy is the BSDF's diffuse (base) reflectance; under the "
         "roughplastic coating the light leaving the base is further weighted by Fresnel "
