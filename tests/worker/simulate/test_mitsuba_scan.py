@@ -17,6 +17,8 @@ from worker.bundle import open_bundle, validate_bundle
 from worker.simulate.__main__ import main
 from worker.simulate.acquisition import Preset
 from worker.simulate.noise import noise_model
+from worker.simulate.physics import PHYSICS_VARIANTS, draw_physics
+from worker.simulate.projector import fringe_profile
 from worker.simulate.scan import simulate_scan
 
 mitsuba_scan = pytest.importorskip(
@@ -216,3 +218,55 @@ def test_cli_renders_with_mitsuba_and_refuses_bad_arguments(tmp_path, capsys):
     )
     assert code == 0
     assert validate_bundle(tmp_path / "d" / "bundle") == []
+
+
+def test_physics_variants_reach_the_mitsuba_instrument(tmp_path):
+    """A drawn Physics sets the camera (bit depth, γ, PSF and its calibration, exposures,
+    hot pixels), the projector profile (here a staircase with levels, response and
+    defocus, phase-step errors: one render per fringe frame), the support and the clay;
+    the bundle stays conforming and the draw is recorded."""
+    res = mitsuba_scan.render_scan_mitsuba(
+        tmp_path / "paper", seed=2, preset=TINY, spp=2, physics="paper-like"
+    )
+    assert validate_bundle(res.bundles["obverse"]) == []
+    with open_bundle(res.bundles["obverse"]) as b:
+        assert b.manifest.camera.bit_depth == 10
+        assert b.manifest.camera.psf_sigma_px == pytest.approx(0.5)
+        # a 10-bit camera stores values below 2^10
+        assert max(int(b.raw(f).max()) for f in b.frames[:5]) <= 1023
+        fringe = b.frames_where(kind="fringe", target="reference", azimuth_deg=90.0)
+        periods = sorted({f.period_um for f in fringe})
+        coarse = [f for f in fringe if f.period_um == periods[-3]]
+        i0, i1, i2, i3 = (b.radiance(f) for f in sorted(coarse, key=lambda f: f.phase_deg))
+        mod = 0.5 * np.hypot(i3 - i1, i0 - i2) / (0.25 * (i0 + i1 + i2 + i3))
+        # The projector's own profile (staircase, levels, response, defocus): its fundamental.
+        pp = PHYSICS_VARIANTS["paper-like"]
+        s_um = np.linspace(0, periods[-3], 4096, endpoint=False)
+        profile = fringe_profile(
+            s_um,
+            period_um=periods[-3],
+            phase_rad=0.0,
+            modulation=pp.modulation,
+            defocus_um=pp.projector_defocus_um,
+            pixel_um=pp.projector_pixel_um,
+            levels=pp.projector_levels,
+            gamma=pp.projector_gamma,
+        )
+        fundamental = 2 * abs(np.mean(profile * np.exp(-2j * np.pi * s_um / periods[-3])))
+        assert fundamental > 0.85  # γ 1.3 raises it above m = 0.8
+        assert np.median(mod) == pytest.approx(fundamental, abs=0.03)
+    physics = json.loads((tmp_path / "paper" / "gt" / "physics.json").read_text())
+    assert physics["physics"]["name"] == "paper-like"
+    assert physics["physics"]["projector_levels"] == 256
+    assert any("subsurface" in n for n in physics["physics_not_modelled"])
+
+    drawn = mitsuba_scan.render_scan_mitsuba(
+        tmp_path / "random", seed=2, preset=TINY, spp=2, physics="random", physics_seed=7
+    )
+    assert validate_bundle(drawn.bundles["obverse"]) == []
+    doc = json.loads((tmp_path / "random" / "gt" / "physics.json").read_text())
+    assert doc["physics"]["name"] == "random-7" and doc["physics_seed"] == 7
+    expected = draw_physics(7)
+    with open_bundle(drawn.bundles["obverse"]) as b:
+        assert b.manifest.camera.bit_depth == expected.bit_depth
+    assert doc["clay"] == dataclasses.asdict(mitsuba_scan.clay_for(expected, 2))

@@ -17,6 +17,7 @@ error is one realisation per direction and the four phases stay consistent.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import sys
@@ -48,12 +49,15 @@ from worker.simulate.mitsuba.scene import (
     write_ply,
 )
 from worker.simulate.noise import NoiseModel, encode_frame, noise_model
+from worker.simulate.physics import Physics, physics_to_dict, resolve_physics
+from worker.simulate.projector import defocus_mtf, fringe_profile
 from worker.simulate.rig import CHANNELS, FrameSpec
 from worker.simulate.scan import SimulationResult, scan_rig, wedge_records
+from worker.simulate.support import scale_albedo, with_support
 from worker.simulate.tablet import FACE_POSES, FACES, make_tablet
-from worker.simulate.view import BACKGROUND_REFLECTANCE, View, render_view
+from worker.simulate.view import View, render_view
 
-__all__ = ["Clay", "draw_clay", "render_scan_mitsuba"]
+__all__ = ["Clay", "clay_for", "draw_clay", "render_scan_mitsuba"]
 
 BSDFS = ("roughplastic", "diffuse")
 
@@ -101,6 +105,22 @@ def draw_clay(seed: int) -> Clay:
     return Clay("roughplastic", float(rng.uniform(0.1, 0.5)), float(rng.uniform(0.1, 1.0)))
 
 
+def clay_for(physics: Physics, seed: int) -> Clay:
+    """The clay of a drawn instrument: its strongest specular lobe (weight w, Blinn–Phong
+    exponent n) as GGX roughness α = √(2/(n + 2)) (the Blinn–Phong/Beckmann correspondence
+    of Walter et al. 2007, "Microfacet models for refraction", Eq. 30) and a specular scale
+    w/0.2 (issue 14's lobe weights run 0–0.2); no lobe: diffuse clay; lobes left to the
+    noise preset (None): ``draw_clay(seed)``."""
+    if physics.specular_lobes is None:
+        return draw_clay(seed)
+    lobes = [lb for lb in physics.specular_lobes if lb[0] > 0]
+    if not lobes:
+        return Clay("diffuse")
+    weight, exponent = max(lobes)
+    alpha = float(np.clip(np.sqrt(2.0 / (exponent + 2.0)), 0.01, 1.0))
+    return Clay("roughplastic", alpha, float(np.clip(weight / 0.2, 0.0, 1.0)))
+
+
 def _first_hits(mi, variant: str, scene, x_mm: np.ndarray, y_mm: np.ndarray, z0_mm: float):
     """Mitsuba's first intersection along +z from (x, y, z0): t (mm, inf: none), normals (N, 3)."""
     n = x_mm.size
@@ -129,14 +149,12 @@ def _first_hits(mi, variant: str, scene, x_mm: np.ndarray, y_mm: np.ndarray, z0_
     return t, normals
 
 
-def _ground_truth(
-    mi, variant: str, scene, view: View, z0_mm: float, support_h_um: float
-) -> dict[str, np.ndarray]:
+def _ground_truth(mi, variant: str, scene, view: View, z0_mm: float) -> dict[str, np.ndarray]:
     """Point samples at the pixel centres by Mitsuba's ray intersection (SCAN_BUNDLE.md:
     the height, normal and reflectance of the surface point seen at p = (c·s, r·s)).
 
-    Mask: the hit lies above the support and the pixel's supersamples all see the tablet
-    (the native rule), so pixels on the walls of the silhouette stay out.
+    Mask: the native rule (the pixel's supersamples all see the tablet), so pixels on the
+    walls of the silhouette stay out.
     """
     w, h, s = view.width, view.height, view.pixel_size_um
     gx, gy = np.meshgrid(np.arange(w) * s / 1000.0, np.arange(h) * s / 1000.0)
@@ -145,7 +163,7 @@ def _ground_truth(
     normals = normals.reshape(h, w, 3)
     normals *= np.where(normals[..., 2:] > 0, -1.0, 1.0)  # the side facing the camera
     native = view.ground_truth()
-    mask = native["mask"] & np.isfinite(height) & (height > support_h_um + 1.0)
+    mask = native["mask"] & np.isfinite(height)
     height = np.where(mask, height, np.nan).astype(np.float32)
     normals = np.where(mask[..., None], normals, np.nan).astype(np.float32)
     albedo = np.where(mask[..., None], native["albedo"], np.nan).astype(np.float32)
@@ -207,6 +225,8 @@ def render_scan_mitsuba(
     spp: int = 16,
     max_depth: int = 3,
     clay: Clay | None = None,
+    physics: str | Physics = "ideal",
+    physics_seed: int | None = None,
     variant: str = "auto",
     mc_seed: int = 0,
     as_zip: bool = False,
@@ -216,7 +236,12 @@ def render_scan_mitsuba(
     ``mesh``, mm, obverse toward -z) with Mitsuba 3 into ``out_dir``/bundle and /gt.
 
     ``spp`` samples per pixel, ``max_depth`` path length (3: one interreflection bounce),
-    ``clay`` the BSDF (default: drawn from ``seed``), ``variant`` ``auto`` (llvm_ad_rgb when
+    ``clay`` the BSDF (default: ``clay_for(physics, seed)``), ``physics`` a ``Physics``, a
+    named variant or ``"random"`` (drawn from ``physics_seed``, default ``seed``): its camera
+    (PSF, γ, bit depth, exposures, hot pixels, E, modulation), projector (profile,
+    defocus, phase-step errors, modulation factors), support, shape, albedo scale, veil
+    and lobes (as the clay) apply; interreflection is the renderer's own and light
+    scattered inside the clay is not modelled (recorded in gt/physics.json). ``variant`` ``auto`` (llvm_ad_rgb when
     a libLLVM >= 17 exists, else scalar_rgb), ``llvm_ad_rgb`` or ``scalar_rgb``;
     ``mc_seed`` changes only the renderer's random numbers (to measure its noise).
     Raises ValueError on bad arguments, FileExistsError before overwriting,
@@ -226,8 +251,16 @@ def render_scan_mitsuba(
 
     pose = _check_args(face, spp, max_depth, pose)
     plan = _resolve_preset(preset)
-    model = noise if isinstance(noise, NoiseModel) else noise_model(noise)
-    clay = clay if clay is not None else draw_clay(seed)
+    base_noise = noise if isinstance(noise, NoiseModel) else noise_model(noise)
+    if physics_seed is None:
+        physics_seed = seed
+    elif isinstance(physics_seed, bool) or not isinstance(physics_seed, int) or physics_seed < 0:
+        raise ValueError(f"physics_seed: must be an integer >= 0, got {physics_seed!r}")
+    drawn = resolve_physics(physics, physics_seed)
+    if mesh is not None and drawn.shape != "standard":
+        drawn = dataclasses.replace(drawn, shape="standard")
+    model = drawn.camera(base_noise)
+    clay = clay if clay is not None else clay_for(drawn, seed)
     width, height = size or (plan.width, plan.height)
     out = Path(out_dir)
     for name in ("bundle", "bundle.zip", "gt"):
@@ -235,14 +268,15 @@ def render_scan_mitsuba(
             raise FileExistsError(f"out: {out / name} exists; choose an empty --out")
     mi, variant = load_mitsuba(variant)
 
-    tablet = load_mesh(mesh) if mesh is not None else make_tablet(seed)
+    tablet = load_mesh(mesh) if mesh is not None else make_tablet(seed, shape=drawn.shape)
     pose = FACE_POSES[face] if pose is None else pose
     pixel = pixel_size_for(width, height)
     render = render_mesh_view if isinstance(tablet, MeshTablet) else render_view
     view = render(
         tablet, pose, width=width, height=height, pixel_size_um=pixel, supersample=plan.supersample
     )
-    rig = scan_rig(seed, width, height, pixel, model)
+    view = with_support(scale_albedo(view, drawn.albedo_scale), drawn.support, seed)
+    rig = scan_rig(seed, width, height, pixel, base_noise, drawn)
     frames = plan_frames(
         plan,
         width=width,
@@ -253,9 +287,6 @@ def render_scan_mitsuba(
     )
     h_ss = view.height_ss_um
     h_tab = h_ss[view.tablet_ss]
-    support_h = float(h_ss[~view.tablet_ss].max()) if (~view.tablet_ss).any() else None
-    if support_h is None:
-        support_h = float(h_tab.min()) - 3000.0
     fringe_periods = [f.period_um for f in frames if f.kind == "fringe"]
     if fringe_periods:
         need = 2 * np.tan(np.radians(plan.polar_deg)) * float(np.max(np.abs(h_tab)))
@@ -308,17 +339,16 @@ def render_scan_mitsuba(
                 "face_normals": True,
                 "bsdf": clay.bsdf(albedo_tex, twosided=True),
             }
-            x0, x1, y0, y1 = (v / 1000.0 for v in bounds_um)
+            # The support (velvet, V-block or cloth) as the view's height field where no
+            # corner of a quad is on the tablet.
+            sverts, sfaces, suv = heightfield_mesh(h_ss, pixel, view.supersample)
+            sfaces = sfaces[~view.tablet_ss.ravel()[sfaces].any(axis=1)]
+            write_ply(Path(tmp) / "support.ply", sverts, sfaces, suv)
             shapes["support"] = {
-                "type": "rectangle",
-                "to_world": mi.ScalarTransform4f()
-                .translate([(x0 + x1) / 2, (y0 + y1) / 2, -support_h / 1000.0])
-                .scale([(x1 - x0) / 2, (y1 - y0) / 2, 1.0])
-                @ mi.ScalarTransform4f().rotate([1, 0, 0], 180.0),
-                "bsdf": {
-                    "type": "diffuse",
-                    "reflectance": {"type": "rgb", "value": BACKGROUND_REFLECTANCE},
-                },
+                "type": "ply",
+                "filename": str(Path(tmp) / "support.ply"),
+                "face_normals": True,
+                "bsdf": {"type": "diffuse", "reflectance": albedo_tex},
             }
         else:
             verts, faces, uv = heightfield_mesh(h_ss, pixel, view.supersample)
@@ -353,13 +383,14 @@ def render_scan_mitsuba(
                 d["emitter"] = emitter
             return d
 
-        gt = _ground_truth(
-            mi, variant, mi.load_dict(scene_dict("object", None)), view, z_cam, support_h
-        )
+        gt = _ground_truth(mi, variant, mi.load_dict(scene_dict("object", None)), view, z_cam)
 
         groups = _light_groups(frames)
+        # A pure sinusoid decomposes into three textures; a projector's staircase, response
+        # or per-frame phase-step errors need one render per frame.
+        general = not drawn.projector_is_sinusoid or drawn.phase_step_error_deg > 0
         n_renders = sum(
-            1 + 2 * len({round(frames[i].period_um, 6) for i in idx})
+            1 + (len(idx) if general else 2 * len({frames[i].period_um for i in idx}))
             if key[1] == "projector"
             else 1
             for key, idx in groups.items()
@@ -412,27 +443,50 @@ def render_scan_mitsuba(
                 continue
             b = base.mean(axis=-1)
             ux, uy = np.sin(np.radians(az)), np.cos(np.radians(az))
-            arg = 2 * np.pi * (px * ux + py * uy)
+            coord_um = px * ux + py * uy  # u·p' of every texel
+            amp = rig.modulation_scale(az, polar, px, py)  # the physics' modulation factor A
             for period in periods:
-                a = arg / period
-                c2 = 2 * render_texture(irr * (1 + np.cos(a)) / 2).mean(axis=-1) - b
-                s2 = 2 * render_texture(irr * (1 + np.sin(a)) / 2).mean(axis=-1) - b
-                for i in idx:
-                    f = frames[i]
-                    if f.period_um != period:
-                        continue
-                    delta = np.radians(f.phase_deg) + rig.phase_offset(az, polar, period)
-                    radiance[i] = b + model.fringe_modulation * (
-                        np.cos(delta) * c2 - np.sin(delta) * s2
-                    )
+                in_set = [i for i in idx if frames[i].period_um == period]
+                if general:
+                    for i in in_set:
+                        f = frames[i]
+                        profile = fringe_profile(
+                            coord_um,
+                            period_um=period,
+                            phase_rad=float(
+                                np.radians(f.phase_deg)
+                                + rig.phase_offset(az, polar, period)
+                                + rig.phase_step_error(f)
+                            ),
+                            modulation=model.fringe_modulation,
+                            defocus_um=drawn.projector_defocus_um,
+                            pixel_um=drawn.projector_pixel_um,
+                            levels=drawn.projector_levels,
+                            gamma=drawn.projector_gamma,
+                        )
+                        radiance[i] = render_texture(irr * (1 + amp * (profile - 1))).mean(-1)
+                    continue
+                # E·(1 + A·m·cos(a + δ)) = E + m·(cos δ·E·A·cos a - sin δ·E·A·sin a), and
+                # E·A·cos a = 2·E(1 + A·cos a)/2 - E with a non-negative texture (A <= 1).
+                a = 2 * np.pi * coord_um / period
+                c2 = 2 * render_texture(irr * (1 + amp * np.cos(a)) / 2).mean(axis=-1) - b
+                s2 = 2 * render_texture(irr * (1 + amp * np.sin(a)) / 2).mean(axis=-1) - b
+                m = model.fringe_modulation * defocus_mtf(period, drawn.projector_defocus_um)
+                for i in in_set:
+                    delta = np.radians(frames[i].phase_deg) + rig.phase_offset(az, polar, period)
+                    radiance[i] = b + m * (np.cos(delta) * c2 - np.sin(delta) * s2)
         bar.close()
 
+    hot = rig.hot_e((height, width), model)
     for i, (frame, file) in enumerate(zip(frames, files, strict=True)):
         lit = radiance.get(i)
-        rad = np.zeros((height, width)) if lit is None else lit + model.stray_light
+        if lit is None:
+            rad = np.zeros((height, width))
+        else:
+            rad = lit + drawn.veil * float(lit.mean()) + model.stray_light
         rng = np.random.default_rng([seed, face_id, i])
         images[file] = encode_frame(
-            rad, noise=model, exposure=frame.exposure, offset_e=offset, rng=rng
+            rad, noise=model, exposure=frame.exposure, offset_e=offset, rng=rng, hot_e=hot
         )
     doc = manifest(
         frames,
@@ -446,6 +500,8 @@ def render_scan_mitsuba(
         noise=model,
         polar_deg=plan.polar_deg,
         reflectance=rig.reflectance_reference,
+        psf_sigma_px=drawn.calibrated_psf_px(base_noise),
+        physics_name=drawn.name,
     )
     doc["scan"]["id"] += "-mitsuba"
     doc["scan"]["tablet"]["simulator"] = "worker.simulate.mitsuba"
@@ -453,12 +509,23 @@ def render_scan_mitsuba(
     bundle = out / ("bundle.zip" if as_zip else "bundle")
     write_bundle(bundle, doc, images, as_zip=as_zip)
     physics = {
+        "simulator": "worker.simulate.mitsuba",
         "renderer": "mitsuba",
         "mitsuba_version": mi.__version__,
         "variant": variant,
         "integrator": {"type": "path", "max_depth": max_depth},
         "spp": spp,
         "mc_seed": mc_seed,
+        "physics_seed": physics_seed,
+        "physics": physics_to_dict(drawn),
+        "physics_not_modelled": [
+            name
+            for name, on in (
+                ("subsurface_um (light scattered inside the clay)", drawn.subsurface_um > 0),
+                ("interreflection, interreflection_um (the renderer's own)", True),
+            )
+            if on
+        ],
         "clay": asdict(clay),
         "clay_note": "albedo.npy is the BSDF's diffuse (base) reflectance; under the "
         "roughplastic coating the light leaving the base is further weighted by Fresnel "
@@ -467,7 +534,7 @@ def render_scan_mitsuba(
         if isinstance(tablet, MeshTablet)
         else "height field mesh of "
         f"the ray-cast view, {view.supersample}x{view.supersample} vertices per pixel",
-        "support": {"reflectance": BACKGROUND_REFLECTANCE, "height_um": support_h},
+        "support": drawn.support,
         "sources": {
             "type": "projector (collimated)",
             "distance_mm": DISTANCE_MM,
