@@ -299,3 +299,19 @@ def test_scalar_and_llvm_variants_render_the_same_scan(tmp_path):
             region = (mask if fa.target == "object" else np.ones_like(mask)) & (la > 0.01)
             assert region.mean() > 0.3
             assert np.median(np.abs(la - lb)[region] / la[region]) < 0.01, fa.file
+
+
+def test_cli_says_how_to_install_mitsuba_when_it_is_missing(tmp_path, capsys, monkeypatch):
+    import worker.simulate.mitsuba.scan as scan_module
+    from worker.simulate.mitsuba.backend import MitsubaUnavailable
+
+    def missing(variant="auto"):
+        raise MitsubaUnavailable("the mitsuba renderer needs Mitsuba 3: pip install ...")
+
+    monkeypatch.setattr(scan_module, "load_mitsuba", missing)
+    code = main(["--out", str(tmp_path / "x"), "--renderer", "mitsuba", "--size", "32x24"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: the mitsuba renderer needs Mitsuba 3")
+    assert "Traceback" not in err
+    assert not (tmp_path / "x").exists()
