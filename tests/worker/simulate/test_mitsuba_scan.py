@@ -315,3 +315,37 @@ def test_cli_says_how_to_install_mitsuba_when_it_is_missing(tmp_path, capsys, mo
     assert err.startswith("error: the mitsuba renderer needs Mitsuba 3")
     assert "Traceback" not in err
     assert not (tmp_path / "x").exists()
+
+
+def test_interreflection_comes_from_the_renderer(tmp_path):
+    """A V-groove lights itself: with one bounce (max_depth 3) its walls get brighter than
+    with direct light only (max_depth 2), while the flat top far from it does not change."""
+
+    def groove(x, y):  # 1.2 mm deep, 4 mm wide, along y, on a flat top
+        return -np.clip(1.2 - 0.6 * np.abs(x), 0.0, None)
+
+    mesh = _grid_mesh(tmp_path / "groove.ply", groove, n=281)
+    preset = dataclasses.replace(TINY, photometric_deg=(0.0,), color_deg=(), fringe_deg=())
+    radiance = {}
+    for depth in (2, 3):
+        res = mitsuba_scan.render_scan_mitsuba(
+            tmp_path / str(depth),
+            seed=1,
+            preset=preset,
+            noise="clean",
+            mesh=mesh,
+            spp=16,
+            max_depth=depth,
+            clay=mitsuba_scan.Clay("diffuse"),
+        )
+        with open_bundle(res.bundles["obverse"]) as b:
+            radiance[depth] = b.radiance(b.frames_where(kind="photometric", target="object")[0])
+    height = np.load(tmp_path / "3" / "gt" / "height.npy")
+    mask = np.load(tmp_path / "3" / "gt" / "mask.npy")
+    top = np.nanmax(height)
+    in_groove = mask & (height < top - 400.0)
+    flat = mask & (height > top - 1.0)
+    gain = radiance[3] / np.maximum(radiance[2], 1e-6)
+    assert in_groove.sum() > 10 and flat.sum() > 100
+    assert np.median(gain[in_groove]) > 1.03  # measured 1.046 (clay albedo ~0.34)
+    assert abs(np.median(gain[flat]) - 1.0) < 0.005
