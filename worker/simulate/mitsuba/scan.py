@@ -22,6 +22,7 @@ import json
 import os
 import sys
 import tempfile
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -42,6 +43,7 @@ from worker.simulate.meshview import MeshTablet, load_mesh, render_mesh_view
 from worker.simulate.mitsuba.backend import load_mitsuba
 from worker.simulate.mitsuba.scene import (
     DISTANCE_MM,
+    Source,
     collimated_source,
     heightfield_mesh,
     projector_dict,
@@ -51,10 +53,10 @@ from worker.simulate.mitsuba.scene import (
 from worker.simulate.noise import NoiseModel, encode_frame, noise_model
 from worker.simulate.physics import Physics, physics_to_dict, resolve_physics
 from worker.simulate.projector import defocus_mtf, fringe_profile
-from worker.simulate.rig import CHANNELS, FrameSpec
+from worker.simulate.rig import CHANNELS, FrameSpec, Rig
 from worker.simulate.scan import SimulationResult, scan_rig, wedge_records
 from worker.simulate.support import scale_albedo, with_support
-from worker.simulate.tablet import FACE_POSES, FACES, make_tablet
+from worker.simulate.tablet import FACE_POSES, FACES, Tablet, make_tablet
 from worker.simulate.view import View, render_view
 
 __all__ = ["Clay", "clay_for", "draw_clay", "render_scan_mitsuba"]
@@ -196,6 +198,77 @@ def _check_args(face: str, spp: int, max_depth: int, pose) -> np.ndarray | None:
     return pose
 
 
+def _light_radiance(
+    frames: list[FrameSpec],
+    idx: list[int],
+    src: Source,
+    irr: np.ndarray,
+    render: Callable[[np.ndarray | None], np.ndarray],
+    rig: Rig,
+    physics: Physics,
+    model: NoiseModel,
+) -> dict[int, np.ndarray]:
+    """Radiance (H, W) of the frames ``idx``, all lit by the source ``src`` whose texture
+    E is ``irr``: ``render(texture)`` renders the scene (RGB) with the emitter's texture
+    replaced (None: E itself).
+
+    Lamp frames: the white render's mean over RGB (photometric) or one channel times the
+    rig's gain (colour). Fringe frames: a pure sinusoid from three renders (module
+    docstring); a projector's staircase, response or phase-step errors (``projector.py``,
+    ``Rig.phase_step_error``) from one render per frame.
+    """
+    radiance: dict[int, np.ndarray] = {}
+    general = not physics.projector_is_sinusoid or physics.phase_step_error_deg > 0
+    az, polar = frames[idx[0]].azimuth_deg, frames[idx[0]].polar_deg
+    periods = sorted({frames[i].period_um for i in idx if frames[i].kind == "fringe"})
+    px, py = src.points_um[..., 0], src.points_um[..., 1]
+    base = render(None)
+    if not periods:
+        for i in idx:
+            f = frames[i]
+            if f.kind == "color":
+                c = CHANNELS.index(f.channel)
+                radiance[i] = base[..., c] * rig.channel_gain[c]
+            else:
+                radiance[i] = base.mean(axis=-1)
+        return radiance
+    b = base.mean(axis=-1)
+    ux, uy = np.sin(np.radians(az)), np.cos(np.radians(az))
+    coord_um = px * ux + py * uy  # u·p' of every texel
+    amp = rig.modulation_scale(az, polar, px, py)  # the physics' modulation factor A
+    for period in periods:
+        in_set = [i for i in idx if frames[i].period_um == period]
+        if general:
+            for i in in_set:
+                f = frames[i]
+                profile = fringe_profile(
+                    coord_um,
+                    period_um=period,
+                    phase_rad=float(
+                        np.radians(f.phase_deg)
+                        + rig.phase_offset(az, polar, period)
+                        + rig.phase_step_error(f)
+                    ),
+                    modulation=model.fringe_modulation,
+                    defocus_um=physics.projector_defocus_um,
+                    pixel_um=physics.projector_pixel_um,
+                    levels=physics.projector_levels,
+                    gamma=physics.projector_gamma,
+                )
+                radiance[i] = render(irr * (1 + amp * (profile - 1))).mean(-1)
+            continue
+        # E·(1 + A·m·cos(a + δ)) = E + m·(cos δ·E·A·cos a - sin δ·E·A·sin a), and
+        # E·A·cos a = 2·E(1 + A·cos a)/2 - E with a non-negative texture (A <= 1).
+        a = 2 * np.pi * coord_um / period
+        c2 = 2 * render(irr * (1 + amp * np.cos(a)) / 2).mean(axis=-1) - b
+        s2 = 2 * render(irr * (1 + amp * np.sin(a)) / 2).mean(axis=-1) - b
+        m = model.fringe_modulation * defocus_mtf(period, physics.projector_defocus_um)
+        for i in in_set:
+            delta = np.radians(frames[i].phase_deg) + rig.phase_offset(az, polar, period)
+            radiance[i] = b + m * (np.cos(delta) * c2 - np.sin(delta) * s2)
+    return radiance
+
+
 def _key_ints(*values: float) -> list[int]:
     return [int(round(v * 1000)) % (1 << 62) for v in values]
 
@@ -210,6 +283,72 @@ def _light_groups(frames: list[FrameSpec]) -> dict[tuple, list[int]]:
         key = (f.target, source, round(f.azimuth_deg % 360, 6), round(f.polar_deg, 6))
         groups.setdefault(key, []).append(i)
     return groups
+
+
+def _object_shapes(
+    mi, tablet: Tablet | MeshTablet, view: View, clay: Clay, albedo_tex: dict, tmp: Path
+) -> dict:
+    """The scanned object's shapes: a synthetic tablet as the height field of its view (the
+    support included); a mesh file as it is, on the support's height field."""
+    width, height, pixel = view.width, view.height, view.pixel_size_um
+    s_mm = pixel / 1000.0
+    ply = tmp / "tablet.ply"
+    shapes: dict = {}
+    if isinstance(tablet, MeshTablet):
+        verts = (tablet.vertices_um @ view.pose.T + view.translation_um) / 1000.0
+        uv = np.stack(
+            [
+                (verts[:, 0] + s_mm / 2) / (width * s_mm),
+                (verts[:, 1] + s_mm / 2) / (height * s_mm),
+            ],
+            -1,
+        )
+        write_ply(ply, verts, tablet.faces, uv)
+        shapes["tablet"] = {
+            "type": "ply",
+            "filename": str(ply),
+            "face_normals": True,
+            "bsdf": clay.bsdf(albedo_tex, twosided=True),
+        }
+        # The support (velvet, V-block or cloth) as the view's height field where no
+        # corner of a quad is on the tablet.
+        sverts, sfaces, suv = heightfield_mesh(view.height_ss_um, pixel, view.supersample)
+        sfaces = sfaces[~view.tablet_ss.ravel()[sfaces].any(axis=1)]
+        write_ply(tmp / "support.ply", sverts, sfaces, suv)
+        shapes["support"] = {
+            "type": "ply",
+            "filename": str(tmp / "support.ply"),
+            "face_normals": True,
+            "bsdf": {"type": "diffuse", "reflectance": albedo_tex},
+        }
+    else:
+        verts, faces, uv = heightfield_mesh(view.height_ss_um, pixel, view.supersample)
+        write_ply(ply, verts, faces, uv)
+        shapes["tablet"] = {
+            "type": "ply",
+            "filename": str(ply),
+            "face_normals": True,
+            "bsdf": clay.bsdf(albedo_tex, twosided=False),
+        }
+    return shapes
+
+
+def _target_shapes(mi, bounds_um: tuple[float, float, float, float], reflectance: float) -> dict:
+    """The reference target: a flat matte white rectangle at h = 0 facing the camera."""
+    x0, x1, y0, y1 = (v / 1000.0 for v in bounds_um)
+    return {
+        "target": {
+            "type": "rectangle",
+            "to_world": mi.ScalarTransform4f()
+            .translate([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
+            .scale([(x1 - x0) / 2, (y1 - y0) / 2, 1.0])
+            @ mi.ScalarTransform4f().rotate([1, 0, 0], 180.0),
+            "bsdf": {
+                "type": "diffuse",
+                "reflectance": {"type": "rgb", "value": reflectance},
+            },
+        }
+    }
 
 
 def render_scan_mitsuba(
@@ -241,8 +380,9 @@ def render_scan_mitsuba(
     (PSF, γ, bit depth, exposures, hot pixels, E, modulation), projector (profile,
     defocus, phase-step errors, modulation factors), support, shape, albedo scale, veil
     and lobes (as the clay) apply; interreflection is the renderer's own and light
-    scattered inside the clay is not modelled (recorded in gt/physics.json). ``variant`` ``auto`` (llvm_ad_rgb when
-    a libLLVM >= 17 exists, else scalar_rgb), ``llvm_ad_rgb`` or ``scalar_rgb``;
+    scattered inside the clay is not modelled (recorded in gt/physics.json).
+    ``variant``: ``auto`` (llvm_ad_rgb when a libLLVM >= 17 exists, else scalar_rgb),
+    ``llvm_ad_rgb`` or ``scalar_rgb``;
     ``mc_seed`` changes only the renderer's random numbers (to measure its noise).
     Raises ValueError on bad arguments, FileExistsError before overwriting,
     MitsubaUnavailable when Mitsuba cannot run.
@@ -299,7 +439,6 @@ def render_scan_mitsuba(
                 f"coarsest fringe period {coarsest:.0f} µm does not exceed 2·tanθ·max|h| = {need:.0f} µm"
             )
 
-    s_mm = pixel / 1000.0
     z_cam = -(float(h_ss.max()) / 1000.0 + 10.0)  # the sensor plane, in front of everything
     reach_um = (float(np.max(np.abs(h_ss))) + 1000.0) * np.tan(np.radians(plan.polar_deg))
     bounds_um = (
@@ -321,58 +460,8 @@ def render_scan_mitsuba(
     offset = rig.offset_e((height, width), model)
 
     with tempfile.TemporaryDirectory(prefix="mitsuba-scan-") as tmp:
-        ply = Path(tmp) / "tablet.ply"
-        shapes: dict = {}
-        if isinstance(tablet, MeshTablet):
-            verts = (tablet.vertices_um @ view.pose.T + view.translation_um) / 1000.0
-            uv = np.stack(
-                [
-                    (verts[:, 0] + s_mm / 2) / (width * s_mm),
-                    (verts[:, 1] + s_mm / 2) / (height * s_mm),
-                ],
-                -1,
-            )
-            write_ply(ply, verts, tablet.faces, uv)
-            shapes["tablet"] = {
-                "type": "ply",
-                "filename": str(ply),
-                "face_normals": True,
-                "bsdf": clay.bsdf(albedo_tex, twosided=True),
-            }
-            # The support (velvet, V-block or cloth) as the view's height field where no
-            # corner of a quad is on the tablet.
-            sverts, sfaces, suv = heightfield_mesh(h_ss, pixel, view.supersample)
-            sfaces = sfaces[~view.tablet_ss.ravel()[sfaces].any(axis=1)]
-            write_ply(Path(tmp) / "support.ply", sverts, sfaces, suv)
-            shapes["support"] = {
-                "type": "ply",
-                "filename": str(Path(tmp) / "support.ply"),
-                "face_normals": True,
-                "bsdf": {"type": "diffuse", "reflectance": albedo_tex},
-            }
-        else:
-            verts, faces, uv = heightfield_mesh(h_ss, pixel, view.supersample)
-            write_ply(ply, verts, faces, uv)
-            shapes["tablet"] = {
-                "type": "ply",
-                "filename": str(ply),
-                "face_normals": True,
-                "bsdf": clay.bsdf(albedo_tex, twosided=False),
-            }
-        x0, x1, y0, y1 = (v / 1000.0 for v in bounds_um)
-        reference_shapes = {
-            "target": {
-                "type": "rectangle",
-                "to_world": mi.ScalarTransform4f()
-                .translate([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
-                .scale([(x1 - x0) / 2, (y1 - y0) / 2, 1.0])
-                @ mi.ScalarTransform4f().rotate([1, 0, 0], 180.0),
-                "bsdf": {
-                    "type": "diffuse",
-                    "reflectance": {"type": "rgb", "value": rig.reflectance_reference},
-                },
-            }
-        }
+        shapes = _object_shapes(mi, tablet, view, clay, albedo_tex, Path(tmp))
+        reference_shapes = _target_shapes(mi, bounds_um, rig.reflectance_reference)
         sensor = sensor_dict(mi, width, height, pixel, model.blur_sigma_px, spp, z_cam)
         integrator = {"type": "path", "max_depth": int(max_depth)}
 
@@ -431,50 +520,9 @@ def render_scan_mitsuba(
                 bar.update(1)
                 return img
 
-            base = render_texture(None)
-            if source_kind == "lamp":
-                for i in idx:
-                    f = frames[i]
-                    if f.kind == "color":
-                        c = CHANNELS.index(f.channel)
-                        radiance[i] = base[..., c] * rig.channel_gain[c]
-                    else:
-                        radiance[i] = base.mean(axis=-1)
-                continue
-            b = base.mean(axis=-1)
-            ux, uy = np.sin(np.radians(az)), np.cos(np.radians(az))
-            coord_um = px * ux + py * uy  # u·p' of every texel
-            amp = rig.modulation_scale(az, polar, px, py)  # the physics' modulation factor A
-            for period in periods:
-                in_set = [i for i in idx if frames[i].period_um == period]
-                if general:
-                    for i in in_set:
-                        f = frames[i]
-                        profile = fringe_profile(
-                            coord_um,
-                            period_um=period,
-                            phase_rad=float(
-                                np.radians(f.phase_deg)
-                                + rig.phase_offset(az, polar, period)
-                                + rig.phase_step_error(f)
-                            ),
-                            modulation=model.fringe_modulation,
-                            defocus_um=drawn.projector_defocus_um,
-                            pixel_um=drawn.projector_pixel_um,
-                            levels=drawn.projector_levels,
-                            gamma=drawn.projector_gamma,
-                        )
-                        radiance[i] = render_texture(irr * (1 + amp * (profile - 1))).mean(-1)
-                    continue
-                # E·(1 + A·m·cos(a + δ)) = E + m·(cos δ·E·A·cos a - sin δ·E·A·sin a), and
-                # E·A·cos a = 2·E(1 + A·cos a)/2 - E with a non-negative texture (A <= 1).
-                a = 2 * np.pi * coord_um / period
-                c2 = 2 * render_texture(irr * (1 + amp * np.cos(a)) / 2).mean(axis=-1) - b
-                s2 = 2 * render_texture(irr * (1 + amp * np.sin(a)) / 2).mean(axis=-1) - b
-                m = model.fringe_modulation * defocus_mtf(period, drawn.projector_defocus_um)
-                for i in in_set:
-                    delta = np.radians(frames[i].phase_deg) + rig.phase_offset(az, polar, period)
-                    radiance[i] = b + m * (np.cos(delta) * c2 - np.sin(delta) * s2)
+            radiance.update(
+                _light_radiance(frames, idx, src, irr, render_texture, rig, drawn, model)
+            )
         bar.close()
 
     hot = rig.hot_e((height, width), model)
