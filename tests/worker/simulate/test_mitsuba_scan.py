@@ -80,6 +80,9 @@ def test_bundle_validates_and_ground_truth_has_the_native_layout(tmp_path):
     assert np.median(tilt[mask]) < 3.0
     physics = json.loads((gt / "physics.json").read_text())
     assert physics["renderer"] == "mitsuba" and physics["spp"] == 4
+    assert physics["simulator"]["name"] == "worker.simulate.mitsuba"
+    area = np.load(gt / "height_area.npy")
+    assert np.median(np.abs(area - height)[mask]) < 5.0
     assert physics["clay"]["model"] == "roughplastic"
     assert "wedges" in json.loads((gt / "wedges.json").read_text())
 

@@ -557,7 +557,7 @@ def render_scan_mitsuba(
     bundle = out / ("bundle.zip" if as_zip else "bundle")
     write_bundle(bundle, doc, images, as_zip=as_zip)
     physics = {
-        "simulator": "worker.simulate.mitsuba",
+        "simulator": {"name": "worker.simulate.mitsuba", "version": 1},
         "renderer": "mitsuba",
         "mitsuba_version": mi.__version__,
         "variant": variant,
@@ -601,6 +601,8 @@ def render_scan_mitsuba(
     def fill(tmp_dir: Path) -> None:
         for name in ("height", "normals", "albedo", "mask"):
             write_new_file(tmp_dir / f"{name}.npy", npy_bytes(gt[name]))
+        # The box mean over each pixel's 2×2 samples, as the native renderer writes it.
+        write_new_file(tmp_dir / "height_area.npy", npy_bytes(view.ground_truth()["height"]))
         wedges = json.dumps({"wedges": wedge_records(tablet, view)}, indent=1)
         write_new_file(tmp_dir / "wedges.json", wedges.encode())
         write_new_file(tmp_dir / "physics.json", json.dumps(physics, indent=1).encode())
