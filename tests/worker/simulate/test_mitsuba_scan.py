@@ -352,3 +352,29 @@ def test_interreflection_comes_from_the_renderer(tmp_path):
     assert in_groove.sum() > 10 and flat.sum() > 100
     assert np.median(gain[in_groove]) > 1.03  # measured 1.046 (clay albedo ~0.34)
     assert abs(np.median(gain[flat]) - 1.0) < 0.005
+
+
+def test_gt_albedo_is_what_the_frames_measure_under_the_coating(tmp_path):
+    """Rough plastic dims its diffuse base (κ < 1, rougher: dimmer); gt/albedo carries κ, so
+    object/reference radiance x the target's reflectance gives the gt albedo on a flat
+    plate (the specular lobe off so that only the diffuse part is compared)."""
+
+    def flat(x, y):
+        return 0.0 * x
+
+    mesh = _grid_mesh(tmp_path / "flat.ply", flat, n=9)
+    preset = dataclasses.replace(TINY, photometric_deg=(0.0,), color_deg=(), fringe_deg=())
+    clay = mitsuba_scan.Clay("roughplastic", alpha=0.4, specular=0.0)
+    res = mitsuba_scan.render_scan_mitsuba(
+        tmp_path, seed=1, preset=preset, noise="clean", mesh=mesh, spp=16, clay=clay
+    )
+    physics = json.loads((tmp_path / "gt" / "physics.json").read_text())
+    assert 0.5 < physics["clay_diffuse_factor"] < 0.7  # measured 0.67 at α 0.3, 0.53 at 0.5
+    albedo = np.load(tmp_path / "gt" / "albedo.npy").mean(axis=-1)  # white light: grey
+    mask = np.load(tmp_path / "gt" / "mask.npy")
+    with open_bundle(res.bundles["obverse"]) as b:
+        obj = b.frames_where(kind="photometric", target="object")[0]
+        measured = b.radiance(obj) / b.radiance(b.reference_of(obj))
+        measured *= b.manifest.reference.reflectance
+    ratio = np.median(measured[mask] / albedo[mask])
+    assert ratio == pytest.approx(1.0, abs=0.03)

@@ -7,13 +7,20 @@
 """
 
 from worker.simulate.mitsuba.backend import VARIANTS, MitsubaUnavailable, load_mitsuba
-from worker.simulate.mitsuba.scan import Clay, clay_for, draw_clay, render_scan_mitsuba
+from worker.simulate.mitsuba.scan import (
+    Clay,
+    clay_for,
+    diffuse_factor,
+    draw_clay,
+    render_scan_mitsuba,
+)
 
 __all__ = [
     "VARIANTS",
     "Clay",
     "MitsubaUnavailable",
     "clay_for",
+    "diffuse_factor",
     "draw_clay",
     "load_mitsuba",
     "render_scan_mitsuba",
