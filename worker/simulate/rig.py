@@ -122,13 +122,18 @@ class Rig:
         return float(rng.uniform(0, 2 * np.pi))
 
     def phase_step_error(self, frame: FrameSpec) -> float:
-        """This frame's error (rad) on its nominal phase step, N(0, σ) per frame (0 if ideal)."""
+        """This frame's error (rad) on its nominal phase step, N(0, σ) (0 if ideal).
+
+        Drawn per azimuth, polar angle, period and step, the same for the object and the
+        reference: a projector's stepping error repeats, so the phase constant that the
+        reference frames measure stays the object's (SCAN_BUNDLE.md) and what is left is a
+        ripple of the 4-step phase.
+        """
         sigma = self.physics.phase_step_error_deg
         if sigma == 0:
             return 0.0
-        target = 1 if frame.target == "object" else 2
         keys = _key(frame.azimuth_deg % 360, frame.polar_deg, frame.period_um, frame.phase_deg)
-        rng = np.random.default_rng([self.seed, 0x57E9, target, *keys])
+        rng = np.random.default_rng([self.seed, 0x57E9, *keys])
         return float(np.radians(rng.normal(0.0, sigma)))
 
     def modulation_scale(
