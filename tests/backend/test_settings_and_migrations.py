@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import secrets
 import stat
 
 import pytest
@@ -26,7 +27,7 @@ def test_production_refuses_missing_or_weak_secret(tmp_path, secret):
 
 
 def test_production_uses_the_configured_secret(tmp_path):
-    secret = "s" * 48
+    secret = secrets.token_urlsafe(48)
     settings = _settings(environment="production", data_dir=tmp_path, secret_key=secret)
     assert settings.signing_secret == secret
     assert settings.cookie_secure is True
