@@ -102,16 +102,33 @@ def create_user(
     return user
 
 
+def revoke_sessions(session: Session, *, user: User) -> None:
+    """Make every session cookie of ``user`` signed so far unusable (a new login still works).
+
+    Incremented in SQL so two concurrent revocations cannot collapse into one.
+    """
+    user.session_version = User.session_version + 1
+    session.flush()
+    session.refresh(user, ["session_version"])
+
+
 def update_user(session: Session, *, user: User, changes: dict[str, Any]) -> User:
+    """Apply ``changes``; a new password or disabling the account revokes its sessions."""
+    revoke = False
     if "password" in changes:
         password = changes.pop("password")
         if password:
             user.password_hash = security.hash_password(password)
+            revoke = True
+    if changes.get("is_active") is False and user.is_active:
+        revoke = True
     for key, value in changes.items():
         setattr(user, key, value)
     if user.role == Role.staff and user.institution_id is None:
         raise ValueError("institution_id: staff users must belong to an institution")
     session.flush()
+    if revoke:
+        revoke_sessions(session, user=user)
     return user
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import hmac
 import secrets
+from dataclasses import dataclass
 
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError
@@ -50,21 +51,36 @@ def constant_time_equal(a: str, b: str) -> bool:
     return hmac.compare_digest(a.encode(), b.encode())
 
 
+@dataclass(frozen=True)
+class SessionClaim:
+    """What a valid session cookie says: the user and the user's session version then."""
+
+    user_id: int
+    session_version: int
+
+
 class SessionSigner:
-    """Signs and reads the session cookie: ``{"uid": user_id}`` with a timestamp."""
+    """Signs and reads the session cookie: ``{"uid": user_id, "sv": session_version}`` with a
+    timestamp. The cookie is valid only while ``users.session_version`` still equals ``sv``
+    (checked by backend.api.deps), so bumping it revokes every cookie of the user."""
 
     def __init__(self, secret: str, *, max_age_s: int):
         self._serializer = URLSafeTimedSerializer(secret, salt="hammurabi-session")
         self._max_age_s = max_age_s
 
-    def dumps(self, user_id: int) -> str:
-        return self._serializer.dumps({"uid": user_id})
+    def dumps(self, user_id: int, session_version: int) -> str:
+        return self._serializer.dumps({"uid": user_id, "sv": session_version})
 
-    def loads(self, cookie: str) -> int | None:
-        """The user id in a valid, unexpired cookie; None for anything else."""
+    def loads(self, cookie: str) -> SessionClaim | None:
+        """The claim of a valid, unexpired cookie; None for anything else (cookies from before
+        session versions, without ``sv``, included)."""
         try:
             data = self._serializer.loads(cookie, max_age=self._max_age_s)
         except (BadSignature, SignatureExpired):
             return None
-        uid = data.get("uid") if isinstance(data, dict) else None
-        return uid if isinstance(uid, int) else None
+        if not isinstance(data, dict):
+            return None
+        uid, version = data.get("uid"), data.get("sv")
+        if type(uid) is not int or type(version) is not int:
+            return None
+        return SessionClaim(user_id=uid, session_version=version)

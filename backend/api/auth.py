@@ -1,4 +1,8 @@
-"""Web sessions: password login sets a signed, HttpOnly, SameSite=Lax cookie."""
+"""Web sessions: password login sets a signed, HttpOnly, SameSite=Lax cookie.
+
+The cookie carries the user's session version; logout bumps it, so a copy of the cookie
+kept by anyone stops working at once (and so do the user's other browsers' sessions).
+"""
 
 from __future__ import annotations
 
@@ -21,7 +25,7 @@ def login(
         raise ApiError(401, "wrong e-mail or password", where="body.password")
     response.set_cookie(
         settings.session_cookie_name,
-        request.app.state.session_signer.dumps(user.id),
+        request.app.state.session_signer.dumps(user.id, user.session_version),
         max_age=settings.session_max_age_s,
         httponly=True,
         samesite="lax",
@@ -32,7 +36,14 @@ def login(
 
 
 @router.post("/logout", status_code=204)
-def logout(settings: SettingsDep) -> Response:
+def logout(request: Request, session: SessionDep, settings: SettingsDep) -> Response:
+    claim = request.app.state.session_signer.loads(
+        request.cookies.get(settings.session_cookie_name, "")
+    )
+    if claim is not None:
+        user = crud.get_user(session, user_id=claim.user_id)
+        if user is not None and user.session_version == claim.session_version:
+            crud.revoke_sessions(session, user=user)
     response = Response(status_code=204)
     response.delete_cookie(
         settings.session_cookie_name,
