@@ -134,11 +134,17 @@ def update_user(session: Session, *, user: User, changes: dict[str, Any]) -> Use
 
 def authenticate(session: Session, *, email: str, password: str) -> User | None:
     user = get_user_by_email(session, email=email)
-    if user is None or not user.is_active:
+    return user if password_matches(user, password) else None
+
+
+def password_matches(user: User | None, password: str) -> bool:
+    """Whether ``user`` exists, is active and has this password (no database access, so it
+    may run after the session is closed)."""
+    if user is None or not user.is_active or not user.password_hash:
         # Hash anyway so that unknown e-mails take as long as wrong passwords.
         security.verify_password(_DUMMY_HASH, password)
-        return None
-    return user if security.verify_password(user.password_hash, password) else None
+        return False
+    return security.verify_password(user.password_hash, password)
 
 
 _DUMMY_HASH = security.hash_password("not a real password")

@@ -197,6 +197,17 @@ class Settings(BaseSettings):
     session_cookie_secure: bool | None = Field(
         default=None, description="Secure flag of the cookie; default: True in production"
     )
+    # login limits (backend.security.LoginLimiter; per server process)
+    login_max_attempts_per_account: int = Field(
+        default=5, ge=1, description="failed logins of one e-mail per window before 429"
+    )
+    login_max_attempts_per_address: int = Field(
+        default=30, ge=1, description="failed logins from one client address per window"
+    )
+    login_window_s: float = Field(default=300.0, gt=0, description="sliding window of both")
+    password_hash_concurrency: int = Field(
+        default=2, ge=1, description="argon2 hashes at once (64 MiB each); the rest wait"
+    )
 
     # HTTP
     cors_allow_origins: list[str] = ["*"]

@@ -6,23 +6,68 @@ kept by anyone stops working at once (and so do the user's other browsers' sessi
 
 from __future__ import annotations
 
+import threading
+
 from fastapi import APIRouter, Request, Response
 
-from backend import crud
+from backend import crud, security
 from backend.api.deps import CurrentUser, SessionDep, SettingsDep
+from backend.db import session_scope
 from backend.errors import ApiError
 from backend.schemas import LoginIn, UserOut
+from backend.settings import Settings
 
 router = APIRouter(prefix="/auth", tags=["auth"])
+_limiter_lock = threading.Lock()
 
 
-@router.post("/login", response_model=UserOut)
-def login(
-    body: LoginIn, request: Request, response: Response, session: SessionDep, settings: SettingsDep
-):
-    user = crud.authenticate(session, email=body.email, password=body.password)
-    if user is None:
+def login_limiter(request: Request) -> security.LoginLimiter:
+    """The app's limiter, made on first use from its settings (a test may set its own in
+    ``app.state.login_limiter`` first); also sizes the process's argon2 slots."""
+    state = request.app.state
+    with _limiter_lock:
+        if getattr(state, "login_limiter", None) is None:
+            settings: Settings = state.settings
+            security.set_hash_concurrency(settings.password_hash_concurrency)
+            state.login_limiter = security.LoginLimiter(
+                per_account=settings.login_max_attempts_per_account,
+                per_address=settings.login_max_attempts_per_address,
+                window_s=settings.login_window_s,
+            )
+        return state.login_limiter
+
+
+@router.post(
+    "/login",
+    response_model=UserOut,
+    responses={429: {"description": "too many failed logins; see Retry-After"}},
+)
+def login(body: LoginIn, request: Request, response: Response, settings: SettingsDep):
+    # No SessionDep: the database connection must not be held while this thread waits for
+    # one of the few argon2 slots (backend.security), so two short transactions instead.
+    limiter = login_limiter(request)
+    who = {
+        "account": body.email.strip().lower(),
+        "address": request.client.host if request.client else "unknown",
+    }
+    wait_s = limiter.attempt(**who)
+    if wait_s is not None:
+        raise ApiError(
+            429,
+            f"too many failed logins for this account or address; try again in {wait_s} s",
+            where="body.email",
+            headers={"Retry-After": str(wait_s)},
+        )
+    factory = request.app.state.sessionmaker
+    with session_scope(factory) as session:
+        candidate = crud.get_user_by_email(session, email=body.email)
+    if not crud.password_matches(candidate, body.password):
         raise ApiError(401, "wrong e-mail or password", where="body.password")
+    limiter.succeeded(**who)
+    with session_scope(factory) as session:
+        user = crud.get_user(session, user_id=candidate.id)
+        if user is None or not user.is_active:  # disabled or deleted meanwhile
+            raise ApiError(401, "wrong e-mail or password", where="body.password")
     response.set_cookie(
         settings.session_cookie_name,
         request.app.state.session_signer.dumps(user.id, user.session_version),
