@@ -71,12 +71,24 @@ def _resend_lost_jobs(settings: Settings, factory) -> None:
     threading.Thread(target=sweeper.run_once, name="startup-sweep", daemon=True).start()
 
 
+def _with_dev_public_url(settings: Settings, *, host: str, port: int) -> Settings:
+    """Without HAMMURABI_PUBLIC_URL (allowed outside production) absolute URLs name the
+    address we listen on; also put in the environment for ``--workers`` processes."""
+    if settings.public_url is not None:
+        return settings
+    if host in ("", "0.0.0.0", "::"):
+        host = "127.0.0.1"
+    public_url = f"http://{f'[{host}]' if ':' in host else host}:{port}"
+    os.environ["HAMMURABI_PUBLIC_URL"] = public_url
+    return settings.model_copy(update={"public_url": public_url})
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from backend.main import create_app
 
-    settings = _settings()
+    settings = _with_dev_public_url(_settings(), host=args.host, port=args.port)
     _resend_lost_jobs(settings, _migrated_sessionmaker(settings))
     options = dict(host=args.host, port=args.port, log_level=args.log_level)
     if args.workers > 1:

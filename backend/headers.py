@@ -93,5 +93,4 @@ class SecurityHeaders:
 
 
 def public_url_is_https(settings: Settings) -> bool:
-    url = getattr(settings, "public_url", None)
-    return bool(url) and str(url).lower().startswith("https://")
+    return settings.resolved_public_url.startswith("https://")

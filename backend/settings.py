@@ -21,13 +21,15 @@ import string
 from functools import cached_property
 from pathlib import Path
 from typing import Literal
+from urllib.parse import urlsplit, urlunsplit
 
-from pydantic import Field, SecretStr, model_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 from sqlalchemy.engine import make_url
 from sqlalchemy.exc import ArgumentError
 
 _MIN_SECRET_CHARS = 32
+DEV_PUBLIC_URL = "http://127.0.0.1:8000"  # `hammurabi serve` sets its own host and port
 MIN_SECRET_BITS = 128
 GENERATE_HINT = 'generate one with: python -c "import secrets; print(secrets.token_urlsafe(48))"'
 
@@ -210,6 +212,12 @@ class Settings(BaseSettings):
     )
 
     # HTTP
+    public_url: str | None = Field(
+        default=None,
+        description="the address users reach the library at, e.g. https://library.museum.org "
+        "(IIIF ids and every absolute URL start with it, never with the request's Host "
+        "header); required in production; elsewhere default http://127.0.0.1:<port>",
+    )
     cors_allow_origins: list[str] = ["*"]
     frontend_dist: Path | None = Field(
         default=None, description="built frontend served at /; default frontend/dist if present"
@@ -249,8 +257,24 @@ class Settings(BaseSettings):
     job_sweep_interval_s: float = Field(default=30.0, gt=0, description="sweeper period")
     job_time_limit_s: float = Field(default=3600.0, gt=0, description="hard limit per task")
 
+    @field_validator("public_url")
+    @classmethod
+    def _check_public_url(cls, value: str | None) -> str | None:
+        if value is None or not value.strip():
+            return None
+        parts = urlsplit(value.strip())
+        if parts.scheme not in ("http", "https") or not parts.hostname:
+            raise ValueError(
+                f"HAMMURABI_PUBLIC_URL {value!r} is not an http(s) URL with a host, "
+                "e.g. https://library.museum.org"
+            )
+        if parts.query or parts.fragment:
+            raise ValueError(f"HAMMURABI_PUBLIC_URL {value!r} must not have a query or fragment")
+        return urlunsplit((parts.scheme, parts.netloc, parts.path.rstrip("/"), "", ""))
+
     @model_validator(mode="after")
-    def _refuse_weak_secrets_in_production(self) -> Settings:
+    def _production_requirements(self) -> Settings:
+        """Every problem at once: weak secrets (see :func:`secret_problem`), no public URL."""
         if self.environment != "production":
             return self
         problems = [
@@ -259,9 +283,14 @@ class Settings(BaseSettings):
             if (problem := secret_problem(value)) is not None
         ]
         if problems:
-            raise ValueError(
-                "refusing to start in production: " + "; ".join(problems) + f" ({GENERATE_HINT})"
+            problems[-1] += f" ({GENERATE_HINT})"
+        if self.public_url is None:
+            problems.append(
+                "HAMMURABI_PUBLIC_URL is not set: give the address users reach the library "
+                "at, e.g. https://library.museum.org (IIIF ids and links are built from it)"
             )
+        if problems:
+            raise ValueError("refusing to start in production: " + "; ".join(problems))
         return self
 
     def _held_secrets(self) -> list[tuple[str, str | None]]:
@@ -282,6 +311,11 @@ class Settings(BaseSettings):
             if password is not None:
                 held.append(("the password in HAMMURABI_DATABASE_URL", str(password)))
         return held
+
+    @property
+    def resolved_public_url(self) -> str:
+        """Base of every absolute URL we hand out, without a trailing slash."""
+        return self.public_url if self.public_url is not None else DEV_PUBLIC_URL
 
     @property
     def resolved_database_url(self) -> str:

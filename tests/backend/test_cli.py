@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 
 from backend import crud
@@ -12,8 +14,16 @@ from backend.tables import Role, Tablet
 
 @pytest.fixture
 def env(monkeypatch, tmp_path):
-    for name in ("HAMMURABI_DATABASE_URL", "HAMMURABI_ENVIRONMENT", "HAMMURABI_SECRET_KEY"):
-        monkeypatch.delenv(name, raising=False)
+    for name in (
+        "HAMMURABI_DATABASE_URL",
+        "HAMMURABI_ENVIRONMENT",
+        "HAMMURABI_SECRET_KEY",
+        "HAMMURABI_PUBLIC_URL",
+    ):
+        # set, then removed: recorded as unset, so whatever a command writes into os.environ
+        # (serve writes the public URL) is removed after the test
+        monkeypatch.setenv(name, "")
+        monkeypatch.delenv(name)
     monkeypatch.setenv("HAMMURABI_DATA_DIR", str(tmp_path / "var"))
     monkeypatch.chdir(tmp_path)  # no stray .env file is read
     return tmp_path / "var" / "hammurabi.db"
@@ -75,7 +85,8 @@ def test_duplicate_user_is_refused(env, capsys):
 def test_production_without_secret_refuses(env, capsys, monkeypatch):
     monkeypatch.setenv("HAMMURABI_ENVIRONMENT", "production")
     assert main(["migrate"]) == 2
-    assert "HAMMURABI_SECRET_KEY" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "HAMMURABI_SECRET_KEY" in err and "HAMMURABI_PUBLIC_URL" in err
 
 
 def test_import_catalogue_command(env, capsys, tmp_path):
@@ -118,3 +129,21 @@ def test_serve_migrates_then_runs_uvicorn(env, monkeypatch):
         "workers": 3,
         "timeout_worker_healthcheck": 60,
     }
+
+
+@pytest.mark.parametrize(
+    ("host", "expected"),
+    [("127.0.0.1", "http://127.0.0.1:8123"), ("0.0.0.0", "http://127.0.0.1:8123"),
+     ("::1", "http://[::1]:8123"), ("lib.local", "http://lib.local:8123")],
+)  # fmt: skip
+def test_serve_defaults_the_public_url_to_its_address(env, monkeypatch, host, expected):
+    from backend.cli import _with_dev_public_url
+    from backend.settings import Settings
+
+    settings = _with_dev_public_url(Settings(_env_file=None), host=host, port=8123)
+    assert settings.resolved_public_url == expected
+    assert os.environ["HAMMURABI_PUBLIC_URL"] == expected  # for --workers processes
+    configured = Settings(_env_file=None, public_url="https://lib.example.org/")
+    assert _with_dev_public_url(configured, host=host, port=1).public_url == (
+        "https://lib.example.org"
+    )

@@ -23,6 +23,7 @@ GOOD = "Yq3hV-0sLk2_ZpR8wNe4TfUa7cXm1JbG9oDiHrKv6Qy5"  # secrets.token_urlsafe(3
 
 def _production(**values) -> Settings:
     values.setdefault("secret_key", GOOD)
+    values.setdefault("public_url", "https://library.example.org")
     return Settings(_env_file=None, environment="production", **values)
 
 
