@@ -237,9 +237,25 @@ class Settings(BaseSettings):
     s3_access_key_id: str | None = None
     s3_secret_access_key: SecretStr | None = None
 
-    # uploads (used by backend.uploads)
-    upload_chunk_size_bytes: int = 8 * 1024 * 1024
-    upload_max_bytes: int = 20 * 1024**3
+    # uploads (used by backend.uploads; docs/admin.md "Upload limits and quotas")
+    upload_chunk_size_bytes: int = Field(default=8 * 1024 * 1024, gt=0)
+    upload_max_bytes: int = Field(
+        default=20 * 1024**3, gt=0, description="largest size_bytes one upload may declare"
+    )
+    upload_quota_bytes: int = Field(
+        default=500 * 1024**3,
+        ge=0,
+        description="per institution: bytes of its stored scans plus bytes received by its "
+        "open uploads; 0 = no quota",
+    )
+    upload_min_free_bytes: int = Field(
+        default=5 * 1024**3, ge=0, description="a chunk that would leave less free disk is 507"
+    )
+    upload_expire_after_s: float = Field(
+        default=7 * 24 * 3600.0,
+        gt=0,
+        description="an upload left open (or refused) this long is deleted by expire_uploads",
+    )
 
     # jobs (used by backend.jobs and the worker)
     broker_url: str | None = Field(

@@ -23,6 +23,7 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    text,
 )
 from sqlalchemy import Enum as SAEnum
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
@@ -119,7 +120,8 @@ class Tablet(Base):
 
     id: Mapped[int] = mapped_column(primary_key=True)
     designation: Mapped[str] = mapped_column(String(300))
-    p_number: Mapped[str | None] = mapped_column(String(32), unique=True)
+    # Unique per institution, not library-wide (crud.create_tablet, migration 0003_p_number).
+    p_number: Mapped[str | None] = mapped_column(String(32), index=True)
     museum_no: Mapped[str | None] = mapped_column(String(300))
     collection: Mapped[str | None] = mapped_column(String(300))
     owner: Mapped[str | None] = mapped_column(String(300))
@@ -156,6 +158,14 @@ class Tablet(Base):
         Index("ix_tablets_collection", "collection"),
         Index("ix_tablets_language", "language"),
         Index("ix_tablets_designation", "designation"),
+        Index("uq_tablets_institution_p_number", "institution_id", "p_number", unique=True),
+        Index(
+            "uq_tablets_p_number_no_institution",
+            "p_number",
+            unique=True,
+            sqlite_where=text("institution_id IS NULL"),
+            postgresql_where=text("institution_id IS NULL"),
+        ),
     )
 
 
