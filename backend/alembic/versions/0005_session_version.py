@@ -1,7 +1,7 @@
 """users.session_version: revocable web sessions (issue 16)
 
-Revision ID: 0003_session_version
-Revises: 0002
+Revision ID: 0005_session_version
+Revises: 0004_search
 Create Date: 2026-11-27 16:10:00
 """
 
@@ -10,8 +10,8 @@ from collections.abc import Sequence
 import sqlalchemy as sa
 from alembic import op
 
-revision: str = "0003_session_version"
-down_revision: str | None = "0002"
+revision: str = "0005_session_version"
+down_revision: str | None = "0004_search"
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
