@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import threading
 
+import anyio
+from anyio import to_thread
 from fastapi import APIRouter, Request, Response
 
 from backend import crud, security
@@ -16,16 +18,17 @@ from backend.db import session_scope
 from backend.errors import ApiError
 from backend.schemas import LoginIn, UserOut
 from backend.settings import Settings
+from backend.tables import User
 
 router = APIRouter(prefix="/auth", tags=["auth"])
-_limiter_lock = threading.Lock()
+_state_lock = threading.Lock()
 
 
 def login_limiter(request: Request) -> security.LoginLimiter:
     """The app's limiter, made on first use from its settings (a test may set its own in
     ``app.state.login_limiter`` first); also sizes the process's argon2 slots."""
     state = request.app.state
-    with _limiter_lock:
+    with _state_lock:
         if getattr(state, "login_limiter", None) is None:
             settings: Settings = state.settings
             security.set_hash_concurrency(settings.password_hash_concurrency)
@@ -37,14 +40,35 @@ def login_limiter(request: Request) -> security.LoginLimiter:
         return state.login_limiter
 
 
+def _login_slots(request: Request) -> anyio.Semaphore:
+    """Logins wait for a hash slot here, on the event loop, holding no worker thread: 40
+    waiting logins must not take the 40 threads every synchronous route needs."""
+    state = request.app.state
+    with _state_lock:
+        if getattr(state, "login_slots", None) is None:
+            state.login_slots = anyio.Semaphore(state.settings.password_hash_concurrency)
+        return state.login_slots
+
+
+def _user_by_email(factory, email: str) -> User | None:
+    with session_scope(factory) as session:
+        return crud.get_user_by_email(session, email=email)
+
+
+def _active_user(factory, user_id: int) -> User | None:
+    with session_scope(factory) as session:
+        user = crud.get_user(session, user_id=user_id)
+        return user if user is not None and user.is_active else None
+
+
 @router.post(
     "/login",
     response_model=UserOut,
     responses={429: {"description": "too many failed logins; see Retry-After"}},
 )
-def login(body: LoginIn, request: Request, response: Response, settings: SettingsDep):
-    # No SessionDep: the database connection must not be held while this thread waits for
-    # one of the few argon2 slots (backend.security), so two short transactions instead.
+async def login(body: LoginIn, request: Request, response: Response, settings: SettingsDep):
+    # async, with two short transactions instead of SessionDep: while a login waits for one
+    # of the few argon2 slots it holds neither a worker thread nor a database connection.
     limiter = login_limiter(request)
     who = {
         "account": body.email.strip().lower(),
@@ -59,15 +83,13 @@ def login(body: LoginIn, request: Request, response: Response, settings: Setting
             headers={"Retry-After": str(wait_s)},
         )
     factory = request.app.state.sessionmaker
-    with session_scope(factory) as session:
-        candidate = crud.get_user_by_email(session, email=body.email)
-    if not crud.password_matches(candidate, body.password):
+    candidate = await to_thread.run_sync(_user_by_email, factory, body.email)
+    async with _login_slots(request):
+        matches = await to_thread.run_sync(crud.password_matches, candidate, body.password)
+    user = await to_thread.run_sync(_active_user, factory, candidate.id) if matches else None
+    if user is None:  # wrong password, or disabled or deleted meanwhile
         raise ApiError(401, "wrong e-mail or password", where="body.password")
     limiter.succeeded(**who)
-    with session_scope(factory) as session:
-        user = crud.get_user(session, user_id=candidate.id)
-        if user is None or not user.is_active:  # disabled or deleted meanwhile
-            raise ApiError(401, "wrong e-mail or password", where="body.password")
     response.set_cookie(
         settings.session_cookie_name,
         request.app.state.session_signer.dumps(user.id, user.session_version),

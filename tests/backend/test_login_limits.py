@@ -179,3 +179,45 @@ def test_settings_size_the_hash_slots(sqlite_url, tmp_path, monkeypatch):
         client.post(LOGIN, json={"email": "nobody@example.org", "password": "x"})
     assert security._hash_slots._initial_value == 3
     app.state.engine.dispose()
+
+
+class BlockedHasher(ProbeHasher):
+    """Every hash waits until released: the slots stay full for as long as the test likes."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.release = threading.Event()
+
+    def _work(self) -> None:
+        with self._lock:
+            self.running += 1
+            self.peak = max(self.peak, self.running)
+        self.release.wait(60)
+        with self._lock:
+            self.running -= 1
+
+
+def test_logins_waiting_for_a_hash_slot_hold_no_worker_thread(limited, monkeypatch):
+    """45 logins stuck behind 2 busy argon2 slots; a synchronous route (which needs one of
+    anyio's 40 worker threads) must still answer."""
+    client, world, _clock = limited
+    probe = BlockedHasher()
+    monkeypatch.setattr(security, "_hasher", probe)
+    monkeypatch.setattr(security, "_hash_slots", security._hash_slots)
+    security.set_hash_concurrency(2)
+    client.app.state.login_limiter = LoginLimiter(per_account=100, per_address=100, window_s=60)
+    pool = ThreadPoolExecutor(max_workers=46)
+    try:
+        logins = [pool.submit(_login, client, world.emails["reader"], "nope") for _ in range(45)]
+        deadline = time.monotonic() + 30
+        while probe.running < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert probe.running == 2
+        listing = pool.submit(client.get, "/api/v1/tablets")
+        assert listing.result(timeout=20).status_code == 200
+        assert probe.running == 2 and not any(f.done() for f in logins)
+    finally:
+        probe.release.set()
+        codes = [f.result(timeout=60).status_code for f in logins]
+        pool.shutdown()
+    assert codes == [401] * 45 and probe.peak == 2
