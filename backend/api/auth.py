@@ -16,7 +16,7 @@ from backend import crud, security
 from backend.api.deps import CurrentUser, SessionDep, SettingsDep
 from backend.db import session_scope
 from backend.errors import ApiError
-from backend.schemas import LoginIn, UserOut
+from backend.schemas import LoginIn, PasswordChangeIn, UserOut
 from backend.settings import Settings
 from backend.tables import User
 
@@ -61,17 +61,12 @@ def _active_user(factory, user_id: int) -> User | None:
         return user if user is not None and user.is_active else None
 
 
-@router.post(
-    "/login",
-    response_model=UserOut,
-    responses={429: {"description": "too many failed logins; see Retry-After"}},
-)
-async def login(body: LoginIn, request: Request, response: Response, settings: SettingsDep):
-    # async, with two short transactions instead of SessionDep: while a login waits for one
-    # of the few argon2 slots it holds neither a worker thread nor a database connection.
-    limiter = login_limiter(request)
+def _attempt(
+    request: Request, limiter: security.LoginLimiter, *, account: str, where: str
+) -> dict[str, str]:
+    """Count a password attempt; 429 with Retry-After when over a limit."""
     who = {
-        "account": body.email.strip().lower(),
+        "account": account.strip().lower(),
         "address": request.client.host if request.client else "unknown",
     }
     wait_s = limiter.attempt(**who)
@@ -79,17 +74,13 @@ async def login(body: LoginIn, request: Request, response: Response, settings: S
         raise ApiError(
             429,
             f"too many failed logins for this account or address; try again in {wait_s} s",
-            where="body.email",
+            where=where,
             headers={"Retry-After": str(wait_s)},
         )
-    factory = request.app.state.sessionmaker
-    candidate = await to_thread.run_sync(_user_by_email, factory, body.email)
-    async with _login_slots(request):
-        matches = await to_thread.run_sync(crud.password_matches, candidate, body.password)
-    user = await to_thread.run_sync(_active_user, factory, candidate.id) if matches else None
-    if user is None:  # wrong password, or disabled or deleted meanwhile
-        raise ApiError(401, "wrong e-mail or password", where="body.password")
-    limiter.succeeded(**who)
+    return who
+
+
+def _set_session_cookie(response: Response, request: Request, settings, user: User) -> None:
     response.set_cookie(
         settings.session_cookie_name,
         request.app.state.session_signer.dumps(user.id, user.session_version),
@@ -99,7 +90,69 @@ async def login(body: LoginIn, request: Request, response: Response, settings: S
         secure=settings.cookie_secure,
         path="/",
     )
+
+
+@router.post(
+    "/login",
+    response_model=UserOut,
+    responses={429: {"description": "too many failed logins; see Retry-After"}},
+)
+async def login(body: LoginIn, request: Request, response: Response, settings: SettingsDep):
+    # async, with two short transactions instead of SessionDep: while a login waits for one
+    # of the few argon2 slots it holds neither a worker thread nor a database connection.
+    limiter = login_limiter(request)
+    who = _attempt(request, limiter, account=body.email, where="body.email")
+    factory = request.app.state.sessionmaker
+    candidate = await to_thread.run_sync(_user_by_email, factory, body.email)
+    async with _login_slots(request):
+        matches = await to_thread.run_sync(crud.password_matches, candidate, body.password)
+    user = await to_thread.run_sync(_active_user, factory, candidate.id) if matches else None
+    if user is None:  # wrong password, or disabled or deleted meanwhile
+        raise ApiError(401, "wrong e-mail or password", where="body.password")
+    limiter.succeeded(**who)
+    _set_session_cookie(response, request, settings, user)
     return UserOut.of(user)
+
+
+def _set_password(factory, user_id: int, password: str) -> User:
+    with session_scope(factory) as session:
+        user = crud.get_user(session, user_id=user_id)
+        return crud.update_user(session, user=user, changes={"password": password})
+
+
+@router.post(
+    "/password",
+    status_code=204,
+    responses={
+        403: {"description": "the current password is wrong"},
+        429: {"description": "too many wrong passwords; see Retry-After"},
+    },
+)
+async def change_password(
+    body: PasswordChangeIn,
+    request: Request,
+    settings: SettingsDep,
+    user: CurrentUser,
+    session: SessionDep,
+) -> Response:
+    """Change one's own password. Every session of the user ends (a stolen cookie too); the
+    browser that asked gets a fresh cookie. API tokens stay valid (revoke them apart)."""
+    # The session that found ``user`` (the same SessionDep) gives its connection back before
+    # this request may wait for a hash slot.
+    await to_thread.run_sync(session.commit)
+    limiter = login_limiter(request)
+    who = _attempt(request, limiter, account=user.email, where="body.current_password")
+    async with _login_slots(request):
+        matches = await to_thread.run_sync(crud.password_matches, user, body.current_password)
+    if not matches:
+        raise ApiError(403, "the current password is wrong", where="body.current_password")
+    limiter.succeeded(**who)
+    factory = request.app.state.sessionmaker
+    async with _login_slots(request):
+        user = await to_thread.run_sync(_set_password, factory, user.id, body.new_password)
+    response = Response(status_code=204)
+    _set_session_cookie(response, request, settings, user)
+    return response
 
 
 @router.post("/logout", status_code=204)

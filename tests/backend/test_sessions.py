@@ -71,3 +71,35 @@ def test_cookie_without_a_session_version_is_refused(app, world):
     assert _me_with(app, legacy) == 401
     assert _me_with(app, signer.dumps(world.users["admin"], 0)) == 200
     assert _me_with(app, signer.dumps(world.users["admin"], 1)) == 401
+
+
+def test_own_password_change_ends_other_sessions_and_keeps_this_one(app, client, world):
+    email = world.emails["reader"]
+    stolen = _login(client, email)
+    response = client.post(
+        "/api/v1/auth/password",
+        json={"current_password": PASSWORD, "new_password": "a brand new password"},
+    )
+    assert response.status_code == 204, response.text
+    fresh = response.cookies[COOKIE]
+    assert _me_with(app, stolen) == 401
+    assert _me_with(app, fresh) == 200
+    with TestClient(app) as other:
+        assert _login(other, email, "a brand new password")
+
+
+def test_own_password_change_needs_the_current_password(app, client, world):
+    cookie = _login(client, world.emails["reader"])
+    response = client.post(
+        "/api/v1/auth/password",
+        json={"current_password": "not it", "new_password": "a brand new password"},
+    )
+    assert response.status_code == 403
+    assert response.json()["where"] == "body.current_password"
+    assert _me_with(app, cookie) == 200  # nothing changed
+    token = client.post(
+        "/api/v1/auth/password",
+        json={"current_password": "not it", "new_password": "a brand new password"},
+        headers=world.headers("staff_own"),
+    )
+    assert token.status_code == 403  # the same through an API token
