@@ -122,3 +122,14 @@ def test_generated_secrets_are_accepted_by_the_library(tmp_path, monkeypatch):
     env_file.write_text("\n".join(lines) + "\n")
     settings = _settings_from(_library_environment(env_file, tmp_path), monkeypatch)
     assert settings.signing_secret == values["HAMMURABI_SECRET_KEY"]
+
+
+def test_every_secret_value_of_env_example_is_refused():
+    """The policy's own list must cover the file it ships with (read here, never in code)."""
+    from backend.secret_policy import secret_problem
+
+    for line in ENV_EXAMPLE.read_text().splitlines():
+        name, _, value = line.partition("=")
+        if not line.startswith("#") and any(w in name for w in ("SECRET", "PASSWORD")):
+            problem = secret_problem(value)
+            assert problem is not None and "placeholder" in problem, (name, value)

@@ -9,14 +9,14 @@ import string
 import pytest
 from pydantic import ValidationError
 
-from backend.settings import (
+from backend.secret_policy import (
     KNOWN_PLACEHOLDERS,
     MIN_SECRET_BITS,
-    Settings,
     estimated_bits,
     placeholder_in,
     secret_problem,
 )
+from backend.settings import Settings
 
 GOOD = "Yq3hV-0sLk2_ZpR8wNe4TfUa7cXm1JbG9oDiHrKv6Qy5"  # secrets.token_urlsafe(33), fixed
 
