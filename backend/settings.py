@@ -120,13 +120,26 @@ class Settings(BaseSettings):
         "sqla+sqlite:///<data_dir>/broker.sqlite (no server needed; backend.queue)",
     )
     job_queue: str = "reconstruct"
+    job_heartbeat_interval_s: float = Field(
+        default=5.0, gt=0, description="a running job's worker refreshes its heartbeat this often"
+    )
     job_stale_after_s: float = Field(
-        default=120.0, gt=0, description="a running job without heartbeat this long is re-sent"
+        default=15.0,
+        gt=0,
+        description="a running job without heartbeat this long is taken over (>= 2 heartbeats)",
     )
     job_queued_stale_after_s: float = Field(
         default=600.0, gt=0, description="a queued job not picked up this long is re-sent"
     )
-    job_sweep_interval_s: float = Field(default=30.0, gt=0, description="sweeper period")
+    job_sweep_interval_s: float = Field(default=5.0, gt=0, description="sweeper period")
+    job_dispatch_backoff_max_s: float = Field(
+        default=60.0, gt=0, description="longest wait between sends of a job the broker refused"
+    )
+    maintenance_interval_s: float = Field(
+        default=3600.0,
+        gt=0,
+        description="how often the sweeper expires uploads (upload_expire_after_s) and dead work folders",
+    )
     job_time_limit_s: float = Field(default=3600.0, gt=0, description="hard limit per task")
 
     @field_validator("public_url")
@@ -143,6 +156,16 @@ class Settings(BaseSettings):
         if parts.query or parts.fragment:
             raise ValueError(f"HAMMURABI_PUBLIC_URL {value!r} must not have a query or fragment")
         return urlunsplit((parts.scheme, parts.netloc, parts.path.rstrip("/"), "", ""))
+
+    @model_validator(mode="after")
+    def _check_job_timing(self) -> Settings:
+        if self.job_stale_after_s < 2 * self.job_heartbeat_interval_s:
+            raise ValueError(
+                f"HAMMURABI_JOB_STALE_AFTER_S ({self.job_stale_after_s:g} s) must be at least "
+                f"two heartbeats (HAMMURABI_JOB_HEARTBEAT_INTERVAL_S = "
+                f"{self.job_heartbeat_interval_s:g} s): a live job would be taken over"
+            )
+        return self
 
     @model_validator(mode="after")
     def _production_requirements(self) -> Settings:

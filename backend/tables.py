@@ -228,6 +228,12 @@ class Job(Base):
     started_at: Mapped[datetime | None]
     finished_at: Mapped[datetime | None]
     heartbeat_at: Mapped[datetime | None]
+    # The process of the current attempt (backend.jobs.process_owner): tells a dead attempt
+    # from a live one when Celery redelivers after a kill.
+    claimed_by: Mapped[str | None] = mapped_column(String(200))
+    # A queued job the broker could not take: sent again from dispatch_after (backoff).
+    dispatch_failures: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    dispatch_after: Mapped[datetime | None] = mapped_column(index=True)
     # No FK to models: models.job_id already points here; a cycle would complicate deletes.
     model_id: Mapped[int | None] = mapped_column(Integer)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)

@@ -1,7 +1,7 @@
 """users.session_version: revocable web sessions (issue 16)
 
-Revision ID: 0005_session_version
-Revises: 0004_search
+Revision ID: 0006_session_version
+Revises: 0005_job_dispatch
 Create Date: 2026-11-27 16:10:00
 """
 
@@ -10,8 +10,8 @@ from collections.abc import Sequence
 import sqlalchemy as sa
 from alembic import op
 
-revision: str = "0005_session_version"
-down_revision: str | None = "0004_search"
+revision: str = "0006_session_version"
+down_revision: str | None = "0005_job_dispatch"
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
