@@ -153,16 +153,17 @@ def test_opened_by_p_number_it_shows_the_whole_tablet_with_every_face(whole_page
 def test_reverse_and_edges_lit_at_a_raking_angle_show_relief(whole_page, tools):
     page = whole_page
     # Key 7: raking light from the left of the view (φ = 270° relative to the camera, 75°).
-    raking = {
-        v: _shot(page, tools, view=v, key="7") for v in ("obverse", "reverse", "top", "right")
-    }
+    raking, polar = {}, {}
+    for v in ("obverse", "reverse", "top", "right"):
+        raking[v] = _shot(page, tools, view=v, key="7")
+        polar[v] = float(page.locator("#viewer").get_attribute("data-polar"))  # tablet frame
     contrast = {v: local_contrast(px) for v, px in raking.items()}
     for v, px in raking.items():
         _save(f"whole-tablet-{v}-raking.png", px)
     # The reverse is lit from behind the obverse's view plane: the light left the front side
     # (before, it could not, and the reverse was black).
-    polar = float(page.locator("#viewer").get_attribute("data-polar"))
-    assert polar > 90, polar
+    assert polar["reverse"] == pytest.approx(180 - 75, abs=0.01), polar
+    assert polar["obverse"] == pytest.approx(75, abs=0.01), polar
     # The obverse's wedges give the reference; the reverse, written as densely, reads as well
     # under the same light relative to it.
     assert contrast["obverse"] > 0.01, contrast
@@ -188,6 +189,22 @@ def test_natural_colour_on_the_whole_tablet(whole_page, tools):
     rev = _shot(page, tools, view="reverse", key="6", mode="natural")
     _save("whole-tablet-reverse-natural.png", rev)
     assert _on_model(rev).mean() > 0.1
+    # Turned 45° and tipped 30° toward the top: obverse, right and top edge meet in view, where
+    # the faces overlap (the seams).
+    page.evaluate(
+        """() => { const v = window.hammurabi.viewer; v.setView('obverse'); v.orbitBy(45);
+        const s = v.getState(); const c = s.camera;
+        const d = c.position.map((p, i) => p - c.target[i]);
+        const a = -30 * Math.PI / 180;
+        const y = d[1] * Math.cos(a) - d[2] * Math.sin(a), z = d[1] * Math.sin(a) + d[2] * Math.cos(a);
+        c.position = [c.target[0] + d[0], c.target[1] + y, c.target[2] + z];
+        v.setState({ camera: c }); }"""
+    )
+    page.locator("body").press("6")
+    tools.idle(page)
+    oblique = tools.render_pixels(page, *SHOT)
+    _save("whole-tablet-oblique-natural.png", oblique)
+    assert _on_model(oblique).mean() > 0.1
 
 
 def test_key_9_makes_the_light_follow_the_camera(whole_page, tools):
