@@ -24,7 +24,8 @@ const $ = (id) => document.getElementById(id);
 export function bindViewerUi(viewer, context) {
   const canvas = $('viewer');
   const widget = createLightWidget($('light-widget'), {
-    onInput: (angles) => viewer.setLight(angles),
+    // The disc is the hemisphere facing the camera: its angles are relative to the view.
+    onInput: (angles) => viewer.setLightFromView(angles),
   });
 
   // --- light ------------------------------------------------------------------------------
@@ -254,7 +255,7 @@ export function bindViewerUi(viewer, context) {
   function sync() {
     scheduled = false;
     const l = viewer.light;
-    widget.draw(l);
+    widget.draw(viewer.lightInView());
     const behind = l.polarDeg > 90 ? ', from behind' : '';
     $('light-readout').textContent =
       `azimuth ${l.azimuthDeg.toFixed(0)}° (from the ${compassLabel(l.azimuthDeg)}), polar ${l.polarDeg.toFixed(0)}°` +

@@ -175,6 +175,20 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     else setLight(cameraLightToWorldAngles(azimuthDeg, polarDeg, cameraBasis()));
   }
 
+  /**
+   * The light's angles relative to the current view (x = screen right, y = screen down,
+   * z = viewing direction): what the light widget shows, whichever frame the light is in.
+   * @returns {{azimuthDeg: number, polarDeg: number}}
+   */
+  function lightInView() {
+    const { azimuthDeg, polarDeg, follow } = state.light;
+    if (follow) return { azimuthDeg, polarDeg };
+    const l = lightDirection(azimuthDeg, polarDeg);
+    const { right, up, dir } = cameraBasis();
+    const d = (a) => a[0] * l[0] + a[1] * l[1] + a[2] * l[2];
+    return lightAnglesOf([d(right), -d(up), d(dir)]);
+  }
+
   function setShading(shading) {
     const next = { ...state.shading, ...shading };
     if (!SHADING_MODES.includes(next.mode)) {
@@ -627,6 +641,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     unload: unloadModel,
     setLight,
     setLightFromView,
+    lightInView,
     setShading,
     setView,
     setProjection,

@@ -157,6 +157,11 @@ def test_reverse_and_edges_lit_at_a_raking_angle_show_relief(whole_page, tools):
     for v in ("obverse", "reverse", "top", "right"):
         raking[v] = _shot(page, tools, view=v, key="7")
         polar[v] = float(page.locator("#viewer").get_attribute("data-polar"))  # tablet frame
+        # The widget shows the light relative to the view: from the left, 75° (not the
+        # tablet-frame angles, which differ on every face but the obverse).
+        shown = page.evaluate("() => window.hammurabi.viewer.lightInView()")
+        assert shown["azimuthDeg"] == pytest.approx(270, abs=0.01), (v, shown)
+        assert shown["polarDeg"] == pytest.approx(75, abs=0.01), (v, shown)
     contrast = {v: local_contrast(px) for v, px in raking.items()}
     for v, px in raking.items():
         _save(f"whole-tablet-{v}-raking.png", px)
