@@ -35,10 +35,13 @@ def _whole_tablet_dir(out: Path) -> None:
         from synthetic import write_gt_model_dirs
     finally:
         sys.path.pop(0)
+    from worker.assets import derive_assets
     from worker.register.io import load_model_dir, write_output_dir
     from worker.register.run import whole_tablet_model
 
     paths, truths = write_gt_model_dirs(out / "faces", size=SIZE)
+    for p in paths:  # curvature and accessibility maps, as the pipeline makes them per face
+        derive_assets(p)
     files = whole_tablet_model([load_model_dir(p) for p in paths], truths)
     write_output_dir(out / "model", files)
 
@@ -210,6 +213,26 @@ def test_natural_colour_on_the_whole_tablet(whole_page, tools):
     oblique = tools.render_pixels(page, *SHOT)
     _save("whole-tablet-oblique-natural.png", oblique)
     assert _on_model(oblique).mean() > 0.1
+
+
+def test_every_shading_mode_uses_each_faces_own_maps(whole_page, tools):
+    page = whole_page
+    clay = _shot(page, tools, view="reverse", key="6", mode="clay")
+    for mode in ("curvature", "accessibility", "relief", "depth", "normals"):
+        px = _shot(page, tools, view="reverse", key="6", mode=mode)
+        notice = page.locator("#notice").inner_text()
+        assert "not available" not in notice and "No " not in notice, (mode, notice)
+        has = page.evaluate(
+            """() => window.hammurabi.viewer.model.partMaterials.map(
+              (m) => m.uniforms.uHasTexture.value)"""
+        )
+        if mode in ("curvature", "accessibility"):
+            assert all(has), (mode, has)  # every face's own map, not the half-lit fallback
+        on = _on_model(px) & _on_model(clay)
+        diff = np.abs(px[on] - clay[on]).mean()
+        assert diff > 0.02, f"{mode} looks like clay ({diff:.3f})"
+        if mode == "curvature":
+            _save("whole-tablet-reverse-curvature.png", px)
 
 
 def test_key_9_makes_the_light_follow_the_camera(whole_page, tools):
