@@ -46,8 +46,36 @@ def _whole_tablet_dir(out: Path) -> None:
     write_output_dir(out / "model", files)
 
 
-def _add_tablet_model(library, model_dir: Path) -> int:
-    """A succeeded registration job of TABLET storing ``model_dir``, as the worker stores it."""
+def _seam_model_dir(out: Path, *, winner: str) -> None:
+    """Two faces "a" (red) and "b" (blue) on exactly the same flat 12 × 10 mm surface (a perfect
+    overlap, identical triangles), "b" drawn second; the ``winner`` has weight 1 everywhere in
+    its normal map's alpha, the other 0."""
+    import json
+
+    from worker.register.io import face_asset_dir, write_output_dir
+    from worker.register.merge import grid_mesh, scene_glb
+
+    rows, cols = 40, 48
+    height = np.zeros((rows, cols))
+    mask = np.ones((rows, cols), bool)
+    colours = {"a": (200, 40, 40), "b": (40, 40, 200)}
+    meshes = {
+        k: grid_mesh(height, mask, np.full((rows, cols, 3), c, np.uint8), pixel_size_um=250.0)
+        for k, c in colours.items()
+    }
+    files = {"model.glb": scene_glb(meshes, {k: np.eye(4) for k in colours})}
+    for k in colours:
+        rgba = np.zeros((rows, cols, 4), np.uint8)
+        rgba[...] = (128, 128, 0, 255 if k == winner else 0)  # n = (0, 0, -1), to the camera
+        buf = __import__("io").BytesIO()
+        Image.fromarray(rgba).save(buf, format="PNG")
+        files[f"{face_asset_dir(k)}/normals.png"] = buf.getvalue()
+    files["report.json"] = json.dumps({"scans": list(colours)}).encode()
+    write_output_dir(out, files)
+
+
+def _add_tablet_model(library, model_dir: Path, tablet: str = TABLET) -> int:
+    """A succeeded registration job of ``tablet`` storing ``model_dir``, as the worker does."""
     from backend import jobs
     from backend.db import make_engine, make_sessionmaker, session_scope
     from backend.storage import LocalStorage
@@ -58,7 +86,7 @@ def _add_tablet_model(library, model_dir: Path) -> int:
         factory = make_sessionmaker(engine)
         storage = LocalStorage(library.data_dir / "storage")
         with session_scope(factory) as session:
-            job = jobs.create(session, tablet_id=library.tablets[TABLET], kind=JobKind.register)
+            job = jobs.create(session, tablet_id=library.tablets[tablet], kind=JobKind.register)
             session.commit()
             jobs.mark_running(session, job_id=job.id)
             model = jobs.mark_succeeded(
@@ -76,6 +104,11 @@ def whole_library(tmp_path_factory, server_module):
     lib = server_module.start_library(tmp / "lib")
     try:
         lib.models["whole"] = _add_tablet_model(lib, tmp / "whole" / "model")
+        for winner in ("a", "b"):  # on another tablet: P999001's menu stays as it is
+            _seam_model_dir(tmp / f"seam-{winner}", winner=winner)
+            lib.models[f"seam-{winner}"] = _add_tablet_model(
+                lib, tmp / f"seam-{winner}", tablet="P999003"
+            )
         yield lib
     finally:
         lib.stop()
@@ -292,3 +325,30 @@ def test_a_face_model_offers_only_its_own_side(whole_page, whole_library, tools)
         timeout=30000,
     )
     assert reverse.is_enabled()
+
+
+def test_where_faces_overlap_the_face_of_larger_weight_is_drawn(browser, whole_library, tools):
+    """Two faces on the same surface: whichever has the larger weight is drawn, not whichever
+    the GPU draws last (plain depth testing with identical depths keeps the later face, "b")."""
+    lib = whole_library
+    context = browser.new_context(viewport={"width": 480, "height": 360})
+    try:
+        for winner in ("a", "b"):
+            page = context.new_page()  # a new document: a changed fragment alone does not load
+            model = lib.models[f"seam-{winner}"]
+            page.goto(f"{lib.url}/tablet.html?id=P999003#m={model}&mode=natural&az=0&po=0")
+            page.wait_for_function(
+                "want => document.getElementById('viewer').dataset.loaded === want",
+                arg=str(model),
+                timeout=30000,
+            )
+            tools.idle(page)
+            px = tools.render_pixels(page, 160, 120)
+            centre = px[50:70, 70:90].reshape(-1, 3).mean(axis=0)
+            red, blue = centre[0], centre[2]
+            if winner == "a":
+                assert red > 2 * blue, (winner, centre)
+            else:
+                assert blue > 2 * red, (winner, centre)
+    finally:
+        context.close()
