@@ -131,3 +131,15 @@ export function cameraLightToWorld(azimuthDeg, polarDeg, { right, up, dir }) {
 export function cameraLightToWorldAngles(azimuthDeg, polarDeg, camera) {
   return lightAngles(cameraLightToWorld(azimuthDeg, polarDeg, camera));
 }
+
+/**
+ * Inverse of {@link cameraLightToWorldAngles}: the angles, relative to a camera, of a light
+ * direction given in the world frame (what the light widget shows).
+ * @param {number[]} l light direction in the world frame (any length > 0)
+ * @param {{right: number[], up: number[], dir: number[]}} camera as for cameraLightToWorld
+ * @returns {{azimuthDeg: number, polarDeg: number}}
+ */
+export function worldLightToCameraAngles(l, { right, up, dir }) {
+  const d = (a) => a[0] * l[0] + a[1] * l[1] + a[2] * l[2];
+  return lightAngles([d(right), -d(up), d(dir)]);
+}

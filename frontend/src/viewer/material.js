@@ -243,14 +243,26 @@ export const PART_UNIFORMS = Object.freeze([
  * with the light, mode and camera uniforms SHARED with `base` (the same objects: setting the
  * light once lights every face) and the maps of {@link PART_UNIFORMS} its own.
  * @param {THREE.ShaderMaterial} base from {@link createRelightMaterial}
+ * @param {{rotation: THREE.Matrix3, normals: THREE.Texture | null, albedo: THREE.Texture | null}} face
+ *   the face's scan → tablet rotation and maps (assets.js' `faces`)
+ * @param {{seamDepthMm: number}} options how far a fragment of weight 0 is pushed back
  * @returns {THREE.ShaderMaterial}
  */
-export function createPartMaterial(base) {
+export function createPartMaterial(base, face, { seamDepthMm }) {
   const uniforms = { ...base.uniforms };
   for (const key of PART_UNIFORMS) {
     const v = base.uniforms[key].value;
     uniforms[key] = { value: v?.clone && !v.isTexture ? v.clone() : v };
   }
+  const blank = base.userData.blank;
+  uniforms.uObjectToWorld.value.copy(face.rotation);
+  uniforms.uNormalMap.value = face.normals ?? blank;
+  uniforms.uHasNormalMap.value = Boolean(face.normals);
+  uniforms.uAlbedoMap.value = face.albedo ?? blank;
+  uniforms.uHasAlbedo.value = Boolean(face.albedo);
+  const img = face.normals?.image ?? face.albedo?.image;
+  uniforms.uTexelSize.value.set(img ? 1 / img.width : 1, img ? 1 / img.height : 1);
+  uniforms.uSeamDepthMm.value = seamDepthMm;
   return new THREE.ShaderMaterial({
     name: 'RelightPartMaterial',
     glslVersion: THREE.GLSL3,
@@ -259,4 +271,29 @@ export function createPartMaterial(base) {
     side: base.side,
     uniforms,
   });
+}
+
+/**
+ * The shading-mode maps of one face of a whole tablet: its own curvature and accessibility
+ * (quality maps are per scan and not carried over: `baseHas` for the shared one).
+ * @param {THREE.ShaderMaterial} m from {@link createPartMaterial}
+ * @param {object} face assets.js' face record (`curvature` layers, `accessibility` texture)
+ * @param {{mode: string, curvatureScale: number}} shading
+ * @param {boolean} baseHas whether the base material has the current mode's map
+ */
+export function applyPartShading(m, face, shading, baseHas) {
+  const u = m.uniforms;
+  let has = false;
+  if (shading.mode === 'curvature' && face.curvature?.length) {
+    const layer = face.curvature[Math.min(shading.curvatureScale, face.curvature.length - 1)];
+    u.uCurvatureMap.value = layer.texture;
+    u.uCurvatureLod.value = layer.lod;
+    has = true;
+  } else if (shading.mode === 'accessibility' && face.accessibility) {
+    u.uAccessMap.value = face.accessibility;
+    has = true;
+  } else if (shading.mode === 'quality') {
+    has = baseHas;
+  }
+  u.uHasTexture.value = has;
 }

@@ -9,10 +9,16 @@
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { loadModelAssets } from './assets.js';
-import { cameraLightToWorld, cameraLightToWorldAngles, lightAngles as lightAnglesOf, lightDirection } from './light.js';
+import {
+  cameraLightToWorld,
+  cameraLightToWorldAngles,
+  lightAngles,
+  lightDirection,
+  worldLightToCameraAngles,
+} from './light.js';
 import { createMarks, pickPoint, projectPoint } from './marks.js';
 import { LAZY_KINDS, missingMessage as missingMessageOf } from './modes.js';
-import { createPartMaterial, createRelightMaterial, MODE_INDEX } from './material.js';
+import { applyPartShading, createPartMaterial, createRelightMaterial, MODE_INDEX } from './material.js';
 import { defaultViewState, SHADING_MODES } from './permalink.js';
 import { applyHiddenParts, createPartToggles, hiddenParts } from './parts.js';
 import { availableViews, canonicalView } from './views.js';
@@ -144,14 +150,9 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       const basis = cameraBasis();
       const { azimuthDeg, polarDeg } = state.light;
       const world = state.light.follow ? cameraLightToWorld(azimuthDeg, polarDeg, basis) : lightDirection(azimuthDeg, polarDeg);
-      // Express the current direction in the new frame, unless the call gives new angles.
-      const inCamera = [
-        world[0] * basis.right[0] + world[1] * basis.right[1] + world[2] * basis.right[2],
-        -(world[0] * basis.up[0] + world[1] * basis.up[1] + world[2] * basis.up[2]),
-        world[0] * basis.dir[0] + world[1] * basis.dir[1] + world[2] * basis.dir[2],
-      ];
+      // Express the current direction in the new frame (the call's own angles, if any, follow).
       state.light.follow = Boolean(light.follow);
-      Object.assign(state.light, lightAnglesOf(state.light.follow ? inCamera : world));
+      Object.assign(state.light, state.light.follow ? worldLightToCameraAngles(world, basis) : lightAngles(world));
     }
     const { follow, ...rest } = light;
     Object.assign(state.light, rest);
@@ -183,10 +184,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
   function lightInView() {
     const { azimuthDeg, polarDeg, follow } = state.light;
     if (follow) return { azimuthDeg, polarDeg };
-    const l = lightDirection(azimuthDeg, polarDeg);
-    const { right, up, dir } = cameraBasis();
-    const d = (a) => a[0] * l[0] + a[1] * l[1] + a[2] * l[2];
-    return lightAnglesOf([d(right), -d(up), d(dir)]);
+    return worldLightToCameraAngles(lightDirection(azimuthDeg, polarDeg), cameraBasis());
   }
 
   function setShading(shading) {
@@ -247,25 +245,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       has = true;
     }
     u.uHasTexture.value = has;
-    for (const [i, m] of (model?.partMaterials ?? []).entries()) applyPartShading(m, a.faces[i], s);
-  }
-
-  /** The shading-mode maps of one face of a whole tablet (its own curvature, accessibility). */
-  function applyPartShading(m, face, s) {
-    const u = m.uniforms;
-    let has = false;
-    if (s.mode === 'curvature' && face.curvature?.length) {
-      const layer = face.curvature[Math.min(s.curvatureScale, face.curvature.length - 1)];
-      u.uCurvatureMap.value = layer.texture;
-      u.uCurvatureLod.value = layer.lod;
-      has = true;
-    } else if (s.mode === 'accessibility' && face.accessibility) {
-      u.uAccessMap.value = face.accessibility;
-      has = true;
-    } else if (s.mode === 'quality') {
-      has = material.uniforms.uHasTexture.value;
-    }
-    u.uHasTexture.value = has;
+    for (const [i, m] of (model?.partMaterials ?? []).entries()) applyPartShading(m, a.faces[i], s, has);
   }
 
   /**
@@ -401,25 +381,13 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     }
     unloadModel();
     const { geometry } = loaded;
-    function facePartMaterial(face) {
-      const m = createPartMaterial(material);
-      const pu = m.uniforms;
-      pu.uObjectToWorld.value.copy(face.rotation);
-      pu.uNormalMap.value = face.normals ?? material.userData.blank;
-      pu.uHasNormalMap.value = Boolean(face.normals);
-      pu.uAlbedoMap.value = face.albedo ?? material.userData.blank;
-      pu.uHasAlbedo.value = Boolean(face.albedo);
-      const img = face.normals?.image ?? face.albedo?.image;
-      pu.uTexelSize.value = new THREE.Vector2(img ? 1 / img.width : 1, img ? 1 / img.height : 1);
-      pu.uSeamDepthMm.value = SEAM_DEPTH_MM;
-      return m;
-    }
+
     geometry.computeBoundingBox();
     geometry.computeBoundingSphere();
     const multi = loaded.parts.length > 1;
     // A whole tablet: one material per face (its own maps and rotation, the light shared),
     // then the invisible one for hidden faces.
-    const partMaterials = multi ? loaded.faces.map((face) => facePartMaterial(face)) : [];
+    const partMaterials = multi ? loaded.faces.map((face) => createPartMaterial(material, face, { seamDepthMm: SEAM_DEPTH_MM })) : [];
     const mesh = new THREE.Mesh(geometry, multi ? [...partMaterials, hiddenMaterial] : material);
     scene.add(mesh);
     const bb = geometry.boundingBox;

@@ -4,6 +4,7 @@ import {
   cameraLightToWorld,
   cameraLightToWorldAngles,
   compassLabel,
+  worldLightToCameraAngles,
   discToAngles,
   lightAngles,
   lightDirection,
@@ -99,5 +100,15 @@ describe('light relative to the camera', () => {
     const a = cameraLightToWorldAngles(270, 75, reverse);
     expect(a.polarDeg).toBeGreaterThan(90); // behind the obverse's view plane
     close(lightDirection(a.azimuthDeg, a.polarDeg), cameraLightToWorld(270, 75, reverse));
+  });
+  it('worldLightToCameraAngles inverts cameraLightToWorld on any view', () => {
+    const top = { right: [1, 0, 0], up: [0, 0, 1], dir: [0, 1, 0] }; // views.js' top edge
+    for (const cam of [reverse, top]) {
+      for (const [a, p] of [[30, 20], [200, 75], [300, 150]]) {
+        const back = worldLightToCameraAngles(cameraLightToWorld(a, p, cam), cam);
+        expect(back.azimuthDeg).toBeCloseTo(a, 9);
+        expect(back.polarDeg).toBeCloseTo(p, 9);
+      }
+    }
   });
 });
