@@ -304,13 +304,18 @@ def test_key_9_makes_the_light_follow_the_camera(whole_page, tools):
 
 def test_a_face_model_offers_only_its_own_side(whole_page, whole_library, tools):
     page, lib = whole_page, whole_library
-    page.locator("#model-select").select_option(str(lib.models["v1"]))
-    page.wait_for_function(
-        "want => document.getElementById('viewer').dataset.loaded === want",
-        arg=str(lib.models["v1"]),
-        timeout=30000,
-    )
-    tools.settle(page)
+
+    def show(label):
+        page.locator("#model-select").select_option(str(lib.models[label]))
+        page.wait_for_function(
+            "want => document.getElementById('viewer').dataset.loaded === want",
+            arg=str(lib.models[label]),
+            timeout=30000,
+        )
+        tools.settle(page)
+        return page.evaluate("() => window.hammurabi.viewer.memory()")
+
+    on_face = show("v1")
     reverse = page.locator("[data-view=reverse]")
     assert reverse.is_disabled()
     assert "mirrored" in reverse.get_attribute("title")
@@ -318,13 +323,12 @@ def test_a_face_model_offers_only_its_own_side(whole_page, whole_library, tools)
     before = page.evaluate("() => window.hammurabi.viewer.getState().camera.position")
     page.locator("body").press("r")  # the key does nothing either
     assert page.evaluate("() => window.hammurabi.viewer.getState().camera.position") == before
-    page.locator("#model-select").select_option(str(lib.models["whole"]))
-    page.wait_for_function(
-        "want => document.getElementById('viewer').dataset.loaded === want",
-        arg=str(lib.models["whole"]),
-        timeout=30000,
-    )
+    show("whole")
     assert reverse.is_enabled()
+    # Every face's textures and materials were freed with the whole tablet: the face model
+    # shown again holds exactly what it held before.
+    assert show("v1") == on_face
+    show("whole")
 
 
 def test_where_faces_overlap_the_face_of_larger_weight_is_drawn(browser, whole_library, tools):
