@@ -53,6 +53,9 @@ Progress = Callable[[str, float], None]
 # An azimuth's height further than this fraction of the finest period's height equivalent
 # P/tanθ (one wrong fringe order) from the azimuths' median is dropped before averaging.
 OUTLIER_ORDERS = 0.25
+# Fringe heights are kept where at least this many azimuths agree (fewer if the bundle has
+# fewer azimuths): the other pixels are reached by the normals or the membrane.
+MIN_AGREEING_AZIMUTHS = 2
 
 
 def _noop(stage: str, fraction: float) -> None:
@@ -353,7 +356,13 @@ def _fringe_heights(bundle, fringe, rho_ref: float, warnings: list):
             "periods_um": [float(p) for p in periods],
             "kept": round(float(np.isfinite(h).mean()), 4),
         }
-    mean, _ = average_azimuths_um(np.stack(heights), outlier_um=float(min(outlier_um)))
+    # Two azimuths must agree where the bundle has two (SCAN_BUNDLE.md's standard
+    # acquisition has four); a bundle of one fringe azimuth has nothing to cross-check.
+    mean, _ = average_azimuths_um(
+        np.stack(heights),
+        outlier_um=float(min(outlier_um)),
+        min_azimuths=min(MIN_AGREEING_AZIMUTHS, len(heights)),
+    )
     if not np.isfinite(mean).any():
         warnings.append("fringe: no pixel has a fringe height")
         return None
