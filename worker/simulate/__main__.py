@@ -1,5 +1,6 @@
 """CLI: ``python -m worker.simulate --out DIR [--seed N] [--size WxH] [--face F] [--preset P]
-[--noise N] [--zip]``. Exit 0 on success, 2 on bad arguments (clear message, nothing written)."""
+[--noise N] [--physics NAME|random] [--physics-seed N] [--zip]``. Exit 0 on success, 2 on
+bad arguments (clear message, nothing written)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import sys
 
 from worker.simulate.acquisition import PRESETS
 from worker.simulate.noise import NOISE_PRESETS
+from worker.simulate.physics import PHYSICS_VARIANTS
 from worker.simulate.scan import parse_size, simulate_scan
 from worker.simulate.tablet import FACES
 
@@ -35,6 +37,21 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="scan this triangle mesh (PLY/OBJ/STL, mm, obverse toward -z) instead",
     )
+    p.add_argument(
+        "--physics",
+        choices=[*PHYSICS_VARIANTS, "random"],
+        default="ideal",
+        metavar="NAME|random",
+        help="instrument physics: a named variant ("
+        + ", ".join(PHYSICS_VARIANTS)
+        + ") or 'random' (drawn from --physics-seed); recorded in gt/physics.json",
+    )
+    p.add_argument(
+        "--physics-seed",
+        type=int,
+        default=None,
+        help="seed of the random physics draw (default: --seed)",
+    )
     p.add_argument("--zip", action="store_true", help="write bundle.zip instead of bundle/")
     return p
 
@@ -43,6 +60,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.seed < 0:
         build_parser().error(f"argument --seed: must be >= 0, got {args.seed}")
+    if args.physics_seed is not None and args.physics_seed < 0:
+        build_parser().error(f"argument --physics-seed: must be >= 0, got {args.physics_seed}")
     try:
         result = simulate_scan(
             args.out,
@@ -54,6 +73,8 @@ def main(argv: list[str] | None = None) -> int:
             as_zip=args.zip,
             progress=True,
             mesh=args.mesh,
+            physics=args.physics,
+            physics_seed=args.physics_seed,
         )
     except (ValueError, FileExistsError) as exc:
         print(f"error: {exc}", file=sys.stderr)
