@@ -55,7 +55,7 @@ __all__ = [
     "surface_of",
 ]
 
-FUSIONS = ("default", "paper")
+FUSIONS = ("default", "paper", "plain")
 SURFACES = ("fused", "fringe", "normals")
 Progress = Callable[[str, float], None]
 
@@ -74,7 +74,8 @@ def reconstruct_bundle(
 ) -> dict:
     """Reconstruct a scan bundle into the model directory `out_dir`; returns the report.
 
-    fusion: "default" (weighted least squares) or "paper" (Kumar et al. 2003 §3.3).
+    fusion: "default" (weighted least squares), "paper" (Kumar et al. 2003 §3.3) or "plain"
+    (the textbook chain of `worker.plain_chain`, the floor the default must clear).
     surface: "fused" (normal use), or a baseline: "fringe" (5×5 median of the fringe
     heights) or "normals" (normals integrated alone), for the benchmark.
     progress(stage, fraction): fraction of the whole job done, 0…1.
@@ -83,6 +84,10 @@ def reconstruct_bundle(
         raise ValueError(f"fusion must be one of {FUSIONS}, got {fusion!r}")
     if surface not in SURFACES:
         raise ValueError(f"surface must be one of {SURFACES}, got {surface!r}")
+    if fusion == "plain":  # the textbook floor, a chain of its own (worker.plain_chain)
+        from worker.plain_chain import reconstruct_plain
+
+        return reconstruct_plain(bundle_path, out_dir, surface=surface, progress=progress)
     report_progress = progress or _noop
     t_start = time.perf_counter()
     try:
