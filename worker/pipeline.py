@@ -21,6 +21,7 @@ from scipy import ndimage
 
 from worker.bundle import BundleError, open_bundle
 from worker.measure import Measurements, ReconstructionError, measure_bundle
+from worker.measure.checks import check_lights, check_saturation, check_surface_request
 from worker.model_dir import ModelArrays, albedo_png_bytes, write_model_dir
 from worker.recon.color import linear_to_srgb8
 from worker.recon.fusion import fuse_default, sharpen_heights
@@ -92,6 +93,9 @@ def reconstruct_bundle(
     t_start = time.perf_counter()
     try:
         with open_bundle(bundle_path) as bundle:
+            check_surface_request(bundle.frames, surface=surface)
+            check_lights(bundle.frames)
+            check_saturation(bundle, bundle.frames)
             meas = measure_bundle(bundle, progress=report_progress, color_in_background=True)
             try:
                 model, report, timings = _model(
