@@ -519,3 +519,31 @@ def test_half_band_edge_slopes_halve_white_noise_and_keep_a_narrow_ridge():
     nan[10:20, 10:20] = np.nan
     ax, ay = transverse_mean_slopes(nan, nan)
     assert np.array_equal(np.isnan(ax), np.isnan(nan)) and np.isfinite(ax[9, 15])
+
+
+@pytest.mark.parametrize("blur_px", [0.0, 1.0, 2.0])
+def test_fringe_blur_is_measured_against_the_normals(blur_px):
+    # Grooves 3–6 px wide (wedges) on a tilted plane; exact normals, fringe heights blurred by
+    # a Gaussian of blur_px (light inside the clay) plus 0.5 µm noise, and a cliff the
+    # median must ignore. The measured σ is the candidate nearest the truth.
+    import cv2
+
+    from worker.recon.quality import fringe_blur_px
+
+    rng = np.random.default_rng(11)
+    rows, cols = 120, 160
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    h = 0.3 * S_UM * x / 10
+    for c0, w in ((20, 3), (50, 4), (80, 5), (115, 6)):
+        h -= 40 * np.clip(1 - np.abs(x - c0 - 0.3 * y) / w, 0, None)
+    h[:, 140:] += 500.0
+    gy, gx = np.gradient(h, S_UM)
+    n = np.stack([-gx, -gy, -np.ones_like(gx)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    f = h.astype(np.float32)
+    if blur_px > 0:
+        f = cv2.GaussianBlur(f, (0, 0), blur_px, borderType=cv2.BORDER_REFLECT)
+    f = f + rng.normal(0, 0.5, f.shape).astype(np.float32)
+    mask = np.ones((rows, cols), bool)
+    got = fringe_blur_px(f, n.astype(np.float32), mask, pixel_size_um=S_UM)
+    assert abs(got - blur_px) <= 0.26, got
