@@ -136,11 +136,12 @@ def test_no_output_height_breaks_the_guard_rule(tmp_path):
     # max(5σ, 50 µm) of it; elsewhere within its neighbourhood's bound (`guard_heights`).
     from worker import pipeline
     from worker.recon.height import valid_fringe
+    from worker.recon.quality import crease_sigma_um
 
     simulate_scan(tmp_path / "sim", seed=1, preset="quick", noise="default", size=SIZE)
     with open_bundle(tmp_path / "sim" / "bundle") as b:
         meas = measure_bundle(b, progress=lambda stage, fraction: None)
-    pipeline.reconstruct_bundle(tmp_path / "sim" / "bundle", tmp_path / "m")
+    report = pipeline.reconstruct_bundle(tmp_path / "sim" / "bundle", tmp_path / "m")
     h = np.load(tmp_path / "m" / "height.npy")
     mask = np.isfinite(h)
     valid = (
@@ -152,7 +153,11 @@ def test_no_output_height_breaks_the_guard_rule(tmp_path):
         )
         & mask
     )
-    sigma = np.nan_to_num(meas.fringe_sigma_um, nan=0.0)
+    # σ of a fringe height as a point sample: phase noise and the crease term of the
+    # fringes' measured blur (`pipeline._guard`).
+    blur = report["refinements"]["fringe_blur"]["sigma_px"]
+    crease = crease_sigma_um(meas.normals, pixel_size_um=meas.pixel_size_um, blur_px=blur)
+    sigma = np.hypot(np.nan_to_num(meas.fringe_sigma_um, nan=0.0), crease)
     tol = np.maximum(5 * sigma, 50.0)
     assert valid.sum() > 0.8 * mask.sum()
     assert np.all(np.abs(h - meas.fringe_height_um)[valid] <= tol[valid] + 1e-3)
