@@ -455,10 +455,32 @@ def _guard(
     }
     if not g.flag.any():
         return height, normals, g.flag, entry
-    near = ndimage.binary_dilation(g.flag > 0, structure=np.ones((3, 3), bool)) & mask
-    fresh = _normals_from_height(np.where(mask, g.height_um, np.nan), mask, meas.pixel_size_um)
-    normals = np.where(near[..., None], fresh, normals).astype(np.float32)
+    near = cv2.dilate((g.flag > 0).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    normals = normals.copy()
+    rows, cols = np.nonzero(near & mask)
+    normals[rows, cols] = _normals_at(g.height_um, mask, rows, cols, meas.pixel_size_um)
     return g.height_um, normals, g.flag, entry
+
+
+def _normals_at(h, mask, rows, cols, s):
+    """(N, 3) unit normals of the surface h at pixels (rows, cols): central differences,
+    one-sided where a neighbour is off the mask, flat where both are (`_normals_from_height`
+    at a few pixels, without its whole-frame distance transform)."""
+    hp = np.pad(np.where(mask, h, np.nan), 1, constant_values=np.nan).astype(np.float64)
+    r, c = rows + 1, cols + 1
+    centre = hp[r, c]
+
+    def slope(before, after):
+        both = np.isfinite(before) & np.isfinite(after)
+        g = np.where(both, (after - before) / (2 * s), 0.0)
+        g = np.where(~both & np.isfinite(after), (after - centre) / s, g)
+        g = np.where(~both & np.isfinite(before), (centre - before) / s, g)
+        return np.nan_to_num(g)
+
+    gx = slope(hp[r, c - 1], hp[r, c + 1])
+    gy = slope(hp[r - 1, c], hp[r + 1, c])
+    norm = np.sqrt(gx * gx + gy * gy + 1.0)
+    return np.stack([-gx / norm, -gy / norm, -1.0 / norm], axis=-1).astype(np.float32)
 
 
 def _fringe_surface(height_um, mask):

@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 import scipy.ndimage as ndi
 import scipy.sparse as sp
@@ -402,8 +403,8 @@ def guard_heights(
     by what ground of slope `max_slope` (80°: a tablet's side, a chip's wall) rises over
     the distance d px to the nearest such height, d·s·max_slope (the side of the tablet
     at its silhouette falls below every interior neighbour; a spike of centimetres does not
-    fit any surface). A pixel that breaks its rule is filled from its neighbourhood
-    (`fill_holes`, harmonic, from the pixels that keep theirs) and the fill clipped to the
+    fit any surface). A pixel that breaks its rule is filled from its neighbourhood (the
+    mean of the pixels around it that keep theirs, `_replace`) and the fill clipped to the
     bound, so no output pixel breaks it. NaN heights stay NaN; off the mask unchanged.
 
     height_um, fringe_height_um: (H, W) µm; fringe_sigma_um: (H, W) µm or None; mask bool;
@@ -439,7 +440,7 @@ def guard_heights(
         return GuardedHeight(out, flag)
     n_lo, n_hi = _neighbourhood_range(np.where(has_f, out, np.nan), has_f, rest, radius)
     if pixel_size_um is not None:
-        d = ndi.distance_transform_edt(~has_f).astype(np.float32)
+        d = cv2.distanceTransform((~has_f).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
         reach = d * np.float32(pixel_size_um * max_slope)
         n_lo, n_hi = n_lo - reach, n_hi + reach
     with np.errstate(invalid="ignore"):
@@ -449,16 +450,38 @@ def guard_heights(
 
 
 def _replace(h, bad, here, lo, hi):
-    """h with the `bad` pixels filled harmonically from the others of `here`, clipped to
-    [lo, hi]; a hole without a rim takes the nearest bound."""
+    """h with the `bad` pixels filled from their neighbourhood and clipped to [lo, hi]: the
+    mean of the pixels of `here` that keep theirs in a 3×3 window, widened (5, 9, 17, 33)
+    where it holds none (window sums from two integral images, read at the bad pixels
+    only); a pixel with none within 16 px takes its nearest bound."""
+    out = h.copy()
     if not bad.any():
-        return h.copy()
-    filled = fill_holes(np.where(bad, np.float32(np.nan), h), here)
+        return out
+    keep = here & ~bad
+    sums = cv2.integral(np.where(keep, h, np.float32(0)).astype(np.float64))
+    counts = cv2.integral(keep.astype(np.uint8))
+    rows, cols = np.nonzero(bad)
+    fill = np.full(rows.size, np.nan)
+    todo = np.ones(rows.size, bool)
+    rmax, cmax = h.shape
+    for half in (1, 2, 4, 8, 16):
+        if not todo.any():
+            break
+        r0, r1 = np.clip(rows - half, 0, rmax), np.clip(rows + half + 1, 0, rmax)
+        c0, c1 = np.clip(cols - half, 0, cmax), np.clip(cols + half + 1, 0, cmax)
+
+        def window(t, r0=r0, r1=r1, c0=c0, c1=c1):
+            return t[r1, c1] - t[r0, c1] - t[r1, c0] + t[r0, c0]
+
+        n = window(counts).astype(np.float64)
+        got = todo & (n > 0)
+        fill[got] = window(sums)[got] / n[got]
+        todo &= ~got
+    lo_b, hi_b = lo[rows, cols], hi[rows, cols]
+    value = np.where(np.isfinite(fill), fill, h[rows, cols])
     with np.errstate(invalid="ignore"):
-        out = np.where(bad, np.clip(filled, lo, hi), h)
-    lost = bad & ~np.isfinite(out)
-    out[lost] = np.clip(h[lost], lo[lost], hi[lost])
-    return out.astype(np.float32)
+        out[rows, cols] = np.clip(value, lo_b, hi_b)
+    return out
 
 
 def valid_fringe(
@@ -485,11 +508,14 @@ def valid_fringe(
     ok = m & np.isfinite(f)
     if azimuths_used is not None:
         ok &= np.asarray(azimuths_used) >= 2
-    ok &= ndi.binary_erosion(m, structure=np.ones((3, 3), bool), iterations=2)
+    inside = cv2.erode(m.astype(np.uint8), np.ones((5, 5), np.uint8), borderValue=0) > 0
+    ok &= inside
     if not ok.any():
         return ok
     fill = float(fast_median(f[ok]))
-    med = ndi.median_filter(np.where(np.isfinite(f) & m, f, np.float32(fill)), size=5)
+    # ndimage.median_filter(size=5) by OpenCV (float32 supports 5×5), ~40× faster.
+    padded = np.pad(np.where(np.isfinite(f) & m, f, np.float32(fill)), 2, mode="edge")
+    med = cv2.medianBlur(padded.astype(np.float32), 5)[2:-2, 2:-2]
     with np.errstate(invalid="ignore"):
         ok &= np.abs(f - med) <= tolerance_um + 2 * pixel_size_um * max_slope
     return ok
@@ -507,9 +533,10 @@ def _neighbourhood_range(values, known, where, radius):
     for _ in range(5):
         if not todo.any():
             break
-        size = 2 * r + 1
-        w_lo = ndi.minimum_filter(v_lo, size=size, mode="constant", cval=np.inf)
-        w_hi = ndi.maximum_filter(v_hi, size=size, mode="constant", cval=-np.inf)
+        kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+        # Minimum and maximum filters (ndimage's, outside the image ignored) by OpenCV.
+        w_lo = cv2.erode(v_lo, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+        w_hi = cv2.dilate(v_hi, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
         got = todo & np.isfinite(w_lo)
         lo[got], hi[got] = w_lo[got], w_hi[got]
         todo &= ~got
