@@ -53,11 +53,20 @@ def fringe_profile(
     if pixel_um == 0 and levels == 0 and gamma == 1:
         out = 1.0 + modulation * mtf * np.cos(2 * np.pi * s / period_um + phase_rad)
         return out.astype(np.float32)
-    step = period_um / 64
-    if pixel_um > 0:
-        step = min(step, pixel_um / 8)
-    if defocus_um > 0:
-        step = min(step, defocus_um / 2)
+    theta = np.linspace(0, 2 * np.pi, 4096, endpoint=False)
+    dc = float(np.mean((0.5 + 0.5 * modulation * np.cos(theta)) ** gamma))
+
+    def light(x: np.ndarray) -> np.ndarray:
+        centres = (np.floor(x / pixel_um) + 0.5) * pixel_um if pixel_um > 0 else x
+        shown = 0.5 + 0.5 * modulation * np.cos(2 * np.pi * centres / period_um + phase_rad)
+        if levels:
+            shown = np.rint(shown * (levels - 1)) / (levels - 1)
+        return shown**gamma
+
+    if defocus_um == 0:  # the staircase itself, exactly, at every sample
+        return (light(s) / dc).astype(np.float32)
+    # Defocus: blur the staircase on a fine 1-D grid (a quarter σ or finer), then interpolate.
+    step = min(period_um / 64, defocus_um / 4, pixel_um / 8 if pixel_um > 0 else np.inf)
     pad = 4 * defocus_um + 2 * pixel_um + step
     lo, hi = float(s.min()) - pad, float(s.max()) + pad
     n = int(np.ceil((hi - lo) / step)) + 1
@@ -65,13 +74,5 @@ def fringe_profile(
         step = (hi - lo) / (_MAX_GRID - 1)
         n = _MAX_GRID
     grid = lo + step * np.arange(n)
-    centres = (np.floor(grid / pixel_um) + 0.5) * pixel_um if pixel_um > 0 else grid
-    shown = 0.5 + 0.5 * modulation * np.cos(2 * np.pi * centres / period_um + phase_rad)
-    if levels:
-        shown = np.rint(shown * (levels - 1)) / (levels - 1)
-    light = shown**gamma
-    if defocus_um > 0:
-        light = gaussian_filter1d(light, defocus_um / step, mode="nearest")
-    theta = np.linspace(0, 2 * np.pi, 4096, endpoint=False)
-    dc = float(np.mean((0.5 + 0.5 * modulation * np.cos(theta)) ** gamma))
-    return (np.interp(s, grid, light) / dc).astype(np.float32)
+    blurred = gaussian_filter1d(light(grid), defocus_um / step, mode="nearest")
+    return (np.interp(s, grid, blurred) / dc).astype(np.float32)

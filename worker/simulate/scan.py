@@ -20,17 +20,18 @@ import trimesh
 from worker.bundle import write_bundle
 from worker.durable import npy_bytes, replace_dir_atomic, write_file_atomic, write_new_file
 from worker.simulate.acquisition import PRESETS, frame_file, manifest, pixel_size_for, plan_frames
-from worker.simulate.meshview import MeshTablet, load_mesh, render_mesh_view
+from worker.simulate.meshview import MeshTablet, load_mesh, mesh_points, render_mesh_view
 from worker.simulate.noise import NoiseModel, noise_model
 from worker.simulate.physics import IDEAL, Physics, physics_to_dict, resolve_physics
 from worker.simulate.rig import Rig, render_frame
 from worker.simulate.support import scale_albedo, with_support
 from worker.simulate.tablet import FACE_POSES, FACES, Tablet, make_tablet
-from worker.simulate.view import View, render_view
+from worker.simulate.view import View, cast_grid, render_view
 
 __all__ = [
     "SimulationResult",
     "parse_size",
+    "point_truth",
     "scan_rig",
     "scene",
     "simulate_scan",
@@ -107,14 +108,52 @@ def wedge_records(tablet: Tablet | MeshTablet, view: View) -> list[dict]:
 SIMULATOR = {"name": "worker.simulate", "version": 2}  # version: bump when frames change
 
 
+def point_truth(
+    tablet: Tablet | MeshTablet, view: View, *, albedo_scale: float = 1.0
+) -> dict[str, np.ndarray]:
+    """Ground truth as SCAN_BUNDLE.md defines the output: point samples at pixel centres.
+
+    One ray per pixel through p = (c·s, r·s), in the view's frame (its pose and
+    translation): height (H, W) µm, normals (H, W, 3) (the surface's own normal there),
+    albedo (H, W, 3) linear RGB (times ``albedo_scale``, clipped to 0.95 as in the frames),
+    mask (H, W) as ``View.ground_truth`` (every sample of the pixel on the tablet); NaN
+    outside the mask.
+    """
+    s = view.pixel_size_um
+    xs, ys = np.arange(view.width) * s, np.arange(view.height) * s
+    t_xy = np.array([view.translation_um[0], view.translation_um[1], 0.0])
+    if isinstance(tablet, MeshTablet):
+        z, normals, albedo = mesh_points(tablet, view.pose, xs, ys, t_xy, s)
+        albedo = np.array(albedo, np.float64)
+    else:
+        z, normals = cast_grid(tablet, view.pose, xs, ys, t_xy, s)
+    height = -view.translation_um[2] - z
+    mask = view.ground_truth()["mask"] & np.isfinite(z)
+    if not isinstance(tablet, MeshTablet):
+        gx, gy = np.meshgrid(xs, ys)
+        pts = np.stack([gx[mask], gy[mask], -height[mask]], -1)
+        albedo = np.zeros((*z.shape, 3))
+        albedo[mask] = tablet.albedo((pts - view.translation_um) @ view.pose)
+    if albedo_scale != 1.0:
+        albedo = np.clip(albedo * np.float32(albedo_scale), 0.0, 0.95)
+    out = {"height": height, "normals": np.array(normals, np.float64), "albedo": albedo}
+    for a in out.values():
+        a[~mask] = np.nan
+    out = {k: v.astype(np.float32) for k, v in out.items()}
+    out["mask"] = mask
+    return out
+
+
 def _write_gt(
     gt_dir: Path, view: View, tablet: Tablet | MeshTablet, physics: Physics, physics_seed
 ) -> None:
-    gt = view.ground_truth()
+    gt = point_truth(tablet, view, albedo_scale=physics.albedo_scale)
+    area = view.ground_truth()["height"]
 
     def fill(tmp: Path) -> None:
         for name in ("height", "normals", "albedo", "mask"):
             write_new_file(tmp / f"{name}.npy", npy_bytes(gt[name]))
+        write_new_file(tmp / "height_area.npy", npy_bytes(area))
         text = json.dumps({"wedges": wedge_records(tablet, view)}, indent=1)
         write_new_file(tmp / "wedges.json", text.encode())
         doc = {

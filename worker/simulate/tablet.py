@@ -261,7 +261,9 @@ def _break(pillow: Pillow, rng: np.random.Generator) -> list[Polyhedron]:
     """A broken tablet: one side cut off by a fracture of 2-4 planar facets (a jagged,
     roughly planar break through the whole thickness), removing 15-35 % of the width or
     height. Each facet is the part of a box around the tablet beyond a tilted plane."""
-    half = pillow.bounding_half_um + 500.0
+    # Inside the ray caster's bounding box (which holds the whole body): a ray that leaves
+    # the cavity there is marched on and misses, instead of stopping on the box.
+    half = pillow.bounding_half_um - 0.5
     axis = int(rng.integers(0, 2))
     side = float(rng.choice([-1.0, 1.0]))
     depth = rng.uniform(0.15, 0.35) * 2 * pillow.half_size_um[axis]
