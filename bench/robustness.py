@@ -4,6 +4,7 @@ tuned on (issue 14, build 4; the bench issue 15 is judged with).
     .venv/bin/python bench/robustness.py [--quick] [--work DIR] [--json FILE] [--jobs N]
                                          [--chains default,plain] [--only NAME,...]
                                          [--instruments native,mitsuba]
+                                         [--mitsuba-tree DIR]
 
 Scans (`SCANS`, 25; `--quick`: the 6 marked quick): random instrument physics from our
 simulator (`python -m worker.simulate --physics random --physics-seed N`, 256×192), the
@@ -106,15 +107,28 @@ SCANS: tuple[Scan, ...] = (
 )
 
 
-def simulator_options(python: str) -> set[str]:
+def _env(tree: Path | None) -> dict | None:
+    """The environment of a simulator child: `tree`'s `worker` package first, if given."""
+    if tree is None:
+        return None
+    return os.environ | {
+        "PYTHONPATH": os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")])
+    }
+
+
+def simulator_options(python: str, tree: Path | None = None) -> set[str]:
     """The options `python -m worker.simulate` offers (its --help)."""
     out = subprocess.run(
-        [python, "-m", "worker.simulate", "--help"], capture_output=True, text=True, check=True
+        [python, "-m", "worker.simulate", "--help"],
+        capture_output=True,
+        text=True,
+        check=True,
+        env=_env(tree),
     ).stdout
     return {w.strip("[],") for w in out.split() if w.startswith(("--", "[--"))}
 
 
-def simulate(scan: Scan, work: Path, python: str) -> Path:
+def simulate(scan: Scan, work: Path, python: str, tree: Path | None = None) -> Path:
     """The scan's folder (bundle/ and gt/), simulated unless both are there already."""
     out = work / scan.name
     if (out / "bundle" / "manifest.json").exists() and (out / "gt" / "height.npy").exists():
@@ -122,7 +136,7 @@ def simulate(scan: Scan, work: Path, python: str) -> Path:
     if out.exists():  # an interrupted simulation: start afresh
         shutil.rmtree(out)
     cmd = [python, "-m", "worker.simulate", "--out", str(out), *scan.args]
-    run = subprocess.run(cmd, capture_output=True, text=True)
+    run = subprocess.run(cmd, capture_output=True, text=True, env=_env(tree))
     if run.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} exited {run.returncode}: {run.stderr.strip()[-500:]}")
     return out
@@ -220,10 +234,14 @@ class Result:
     chains: dict = field(default_factory=dict)
 
 
-def run_scan(scan: Scan, work: Path, chains: list[str], python: str) -> Result:
+def run_scan(
+    scan: Scan, work: Path, chains: list[str], python: str, trees: dict | None = None
+) -> Result:
+    """Simulate (unless cached) and reconstruct one scan by each chain. trees: per
+    instrument, a source tree whose `worker.simulate` renders its scans (default: this one)."""
     res = Result(scan)
     try:
-        sim = simulate(scan, work, python)
+        sim = simulate(scan, work, python, (trees or {}).get(scan.instrument))
     except RuntimeError as exc:
         res.error = str(exc)
         return res
@@ -386,6 +404,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--chains", default="default,plain")
     ap.add_argument("--only", default="", help="comma-separated scan names")
     ap.add_argument("--instruments", default="native,mitsuba")
+    ap.add_argument(
+        "--mitsuba-tree",
+        type=Path,
+        default=None,
+        help="source tree whose worker.simulate renders the Mitsuba scans (a checkout of a "
+        "branch that has --renderer mitsuba; default: this tree)",
+    )
     args = ap.parse_args(argv)
     python = sys.executable
     chains = [c for c in args.chains.split(",") if c]
@@ -397,21 +422,25 @@ def main(argv: list[str] | None = None) -> int:
         if unknown:
             ap.error(f"--only: unknown scans {sorted(unknown)}; known: {[s.name for s in SCANS]}")
         scans = [s for s in SCANS if s.name in wanted]
-    options = simulator_options(python)
+    trees = {"mitsuba": args.mitsuba_tree} if args.mitsuba_tree else {}
+    options = {i: simulator_options(python, trees.get(i)) for i in {s.instrument for s in SCANS}}
     skipped = []
     for s in list(scans):
         needs = {a for a in s.args if a.startswith("--")}
-        if s.instrument not in instruments or not needs <= options:
+        if s.instrument not in instruments or not needs <= options[s.instrument]:
             scans.remove(s)
             skipped.append(s.name)
     if skipped:
-        missing = sorted({a for s in SCANS for a in s.args if a.startswith("--")} - options)
+        missing = sorted(
+            {a for s in SCANS for a in s.args if a.startswith("--")}
+            - set().union(*options.values())
+        )
         why = f"; simulator lacks {', '.join(missing)}" if missing else ""
         print(f"skipped{why}: {', '.join(skipped)}", file=sys.stderr)
     args.work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        results = list(pool.map(lambda s: run_scan(s, args.work, chains, python), scans))
+        results = list(pool.map(lambda s: run_scan(s, args.work, chains, python, trees), scans))
     summ = summary(results, chains)
     cmd = "bench/robustness.py " + " ".join(argv if argv is not None else sys.argv[1:])
     print(f"## Robustness bench: `{cmd.strip()}`\n")

@@ -63,3 +63,31 @@ def test_bench_lists_enough_scans(robustness):
     assert sum(s.quick for s in scans) == 6
     assert {s.instrument for s in scans} == {"native", "mitsuba"}
     assert any("paper-like" in s.args and "paper" in s.args for s in scans)
+
+
+def test_summary_counts_the_scans_where_the_default_is_worse(robustness):
+    def result(name, default, plain):
+        r = robustness.Result(robustness.Scan(name, "native", ()))
+        r.chains = {"default": {"exit": 0, **default}, "plain": {"exit": 0, **plain}}
+        return r
+
+    results = [
+        # 5 % worse: within the slack; coverage 0.80 vs 0.95: worse.
+        result(
+            "a", {"height_mae_um": 1.05, "coverage": 0.80}, {"height_mae_um": 1.0, "coverage": 0.95}
+        ),
+        # 20 % worse on MAE.
+        result(
+            "b", {"height_mae_um": 1.2, "coverage": 1.0}, {"height_mae_um": 1.0, "coverage": 1.0}
+        ),
+        # A default that fails where plain completes is worse on every metric.
+        result("c", {}, {"height_mae_um": 1.0}),
+    ]
+    results[2].chains["default"]["exit"] = 2
+    summ = robustness.summary(results, ["default", "plain"])
+    worse = summ["default_worse_than_plain"]
+    assert worse["height_mae_um"] == ["b", "c"]
+    assert worse["coverage"] == ["a", "c"]
+    assert summ["chains"]["default"]["completed"] == 2
+    assert summ["chains"]["plain"]["height_mae_um"] == {"median": 1.0, "worst": 1.0}
+    assert summ["chains"]["default"]["coverage"]["worst"] == 0.80
