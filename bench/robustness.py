@@ -107,13 +107,14 @@ SCANS: tuple[Scan, ...] = (
 )
 
 
-def _env(tree: Path | None) -> dict | None:
-    """The environment of a simulator child: `tree`'s `worker` package first, if given."""
+def _child(tree: Path | None) -> dict:
+    """subprocess.run's arguments for a simulator child that imports `tree`'s `worker`
+    package, if given: run in the tree (`python -m` puts the working directory first on
+    sys.path, before PYTHONPATH, so this tree's own package would win from here)."""
     if tree is None:
-        return None
-    return os.environ | {
-        "PYTHONPATH": os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")])
-    }
+        return {}
+    path = os.pathsep.join(p for p in (str(tree), os.environ.get("PYTHONPATH", "")) if p)
+    return {"cwd": str(tree), "env": os.environ | {"PYTHONPATH": path}}
 
 
 def simulator_options(python: str, tree: Path | None = None) -> set[str]:
@@ -123,7 +124,7 @@ def simulator_options(python: str, tree: Path | None = None) -> set[str]:
         capture_output=True,
         text=True,
         check=True,
-        env=_env(tree),
+        **_child(tree),
     ).stdout
     return {w.strip("[],") for w in out.split() if w.startswith(("--", "[--"))}
 
@@ -136,7 +137,7 @@ def simulate(scan: Scan, work: Path, python: str, tree: Path | None = None) -> P
     if out.exists():  # an interrupted simulation: start afresh
         shutil.rmtree(out)
     cmd = [python, "-m", "worker.simulate", "--out", str(out), *scan.args]
-    run = subprocess.run(cmd, capture_output=True, text=True, env=_env(tree))
+    run = subprocess.run(cmd, capture_output=True, text=True, **_child(tree))
     if run.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} exited {run.returncode}: {run.stderr.strip()[-500:]}")
     return out
@@ -422,7 +423,9 @@ def main(argv: list[str] | None = None) -> int:
         if unknown:
             ap.error(f"--only: unknown scans {sorted(unknown)}; known: {[s.name for s in SCANS]}")
         scans = [s for s in SCANS if s.name in wanted]
-    trees = {"mitsuba": args.mitsuba_tree} if args.mitsuba_tree else {}
+    # Absolute: a simulator child may run in another directory (`_child`).
+    args.work = args.work.resolve()
+    trees = {"mitsuba": args.mitsuba_tree.resolve()} if args.mitsuba_tree else {}
     options = {i: simulator_options(python, trees.get(i)) for i in {s.instrument for s in SCANS}}
     skipped = []
     for s in list(scans):
