@@ -9,16 +9,18 @@ tuned on (issue 14, build 4; the bench issue 15 is judged with).
 Scans (`SCANS`, 25; `--quick`: the 6 marked quick): random instrument physics from our
 simulator (`python -m worker.simulate --physics random --physics-seed N`, 256×192), the
 paper-like rig at 1280×1024, the native `default`/`hard` presets at 512×384, and scans
-rendered by the second instrument (`--renderer mitsuba`, 256×192). Each scan is simulated
-once into `--work` (kept: a scan whose bundle and gt are there is not simulated again) and
+rendered by the second instrument (`--renderer mitsuba`, 256×192; `--mitsuba-tree`: taken
+from another source tree's simulator). Each scan is simulated once into `--work` (a scan
+whose bundle and gt are there is not simulated again; a folder holding only part of them
+is simulated afresh, so two runs must not share `--work` at the same time) and
 reconstructed by each chain with `python -m worker.reconstruct BUNDLE OUT --fusion CHAIN`
 in a child process, timed from process start to exit (model directories go to a temporary
 folder, deleted after evaluation).
 
 Figures (worker.recon.evaluate, core pixels: gt mask eroded by 4 px, true slope < 60°,
 median offset removed): coverage, output pixels outside the true mask (`extra`, a fraction
-of the true mask: support taken for tablet), height MAE, RMS, p99.9 and max |error|, normal median
-and mean error, wedge depth error; and two spike counts over every output pixel:
+of the true mask: support taken for tablet), height MAE, RMS, p99.9 and max |error|, normal
+median and mean error, wedge depth error; and two spike counts over every output pixel:
 `spk f` = pixels whose height is more than 50 µm from the chain's own fringe heights
 (quality/fringe_disagreement_um; issue 15's max(5σ_fringe, 50 µm) with σ unknown, as the
 model directory does not carry it), `spk gt` = pixels of the true mask more than 50 µm
