@@ -42,7 +42,8 @@ def evaluate(
     spike_um: float = 50.0,
     range_margin_um: float = 50.0,
 ) -> dict:
-    """Figures: coverage, height MAE/RMS/p99.9/max |error| (µm, median offset removed), median
+    """Figures: coverage, mask_extra (output pixels outside the true mask, as a fraction of
+    it), height MAE/RMS/p99.9/max |error| (µm, median offset removed), median
     and mean normal error (°), wedge depth MAE (µm), the number of evaluated pixels and
     wedges, and two spike counts over every reconstructed pixel (not only the core):
     `height_spikes`, pixels of the true mask off by more than `spike_um` (issue 15's "never
@@ -83,6 +84,7 @@ def evaluate(
         depth_err.append(abs(wedge_depth_um(h_fill, w) - wedge_depth_um(gt_height_um, w)))
     return {
         "coverage": coverage,
+        "mask_extra": float((m & ~gm & np.isfinite(height_um)).sum() / max(gm.sum(), 1)),
         "pixels": int(sel.sum()),
         "height_mae_um": float(np.mean(abs_err)) if err.size else float("nan"),
         "height_rms_um": float(np.sqrt(np.mean(err**2))) if err.size else float("nan"),
