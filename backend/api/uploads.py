@@ -19,7 +19,7 @@ from pydantic import BaseModel, Field
 from starlette.requests import ClientDisconnect
 
 from backend import uploads
-from backend.api.deps import CurrentUser, SessionDep, SettingsDep
+from backend.api.deps import CurrentUser, RowId, SessionDep, SettingsDep
 from backend.api.jobs import DispatcherDep, JobOut, send
 from backend.api.models import StorageDep, StorageErrorRoute, check_tablet_access
 from backend.api.scans import ScanOut
@@ -33,7 +33,7 @@ SHA256_PATTERN = r"^[0-9a-fA-F]{64}$"
 
 
 class UploadCreate(BaseModel):
-    tablet_id: int = Field(ge=1)
+    tablet_id: RowId
     filename: str = Field(min_length=1, max_length=255, pattern=r"^[^/\\\x00]+\.[zZ][iI][pP]$")
     size_bytes: int = Field(gt=0)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from backend import crud
-from backend.api.deps import AdminUser, SessionDep
+from backend.api.deps import AdminUser, RowId, SessionDep
 from backend.errors import ApiError, not_found
 from backend.schemas import UserCreate, UserOut, UserUpdate
 from backend.tables import Institution
@@ -42,7 +42,7 @@ def create_user(body: UserCreate, session: SessionDep, _admin: AdminUser):
 
 
 @router.get("/{user_id}", response_model=UserOut)
-def read_user(user_id: int, session: SessionDep, _admin: AdminUser):
+def read_user(user_id: RowId, session: SessionDep, _admin: AdminUser):
     user = crud.get_user(session, user_id=user_id)
     if user is None:
         raise not_found(f"user {user_id}", where="user_id")
@@ -50,7 +50,7 @@ def read_user(user_id: int, session: SessionDep, _admin: AdminUser):
 
 
 @router.patch("/{user_id}", response_model=UserOut)
-def update_user(user_id: int, body: UserUpdate, session: SessionDep, _admin: AdminUser):
+def update_user(user_id: RowId, body: UserUpdate, session: SessionDep, _admin: AdminUser):
     user = crud.get_user(session, user_id=user_id)
     if user is None:
         raise not_found(f"user {user_id}", where="user_id")
