@@ -153,8 +153,10 @@ def throwaway_postgres() -> Iterator[str]:
 
 
 @contextmanager
-def running_server(url: str, data_dir: Path, *, extra_env: dict | None = None) -> Iterator[str]:
-    """``hammurabi serve`` on ``url`` at a free loopback port; yields the base URL."""
+def running_server(
+    url: str, data_dir: Path, *, extra_env: dict | None = None
+) -> Iterator[tuple[str, int]]:
+    """``hammurabi serve`` on ``url`` at a free loopback port; yields (base URL, its pid)."""
     env = dict(
         os.environ,
         HAMMURABI_ENVIRONMENT="test",
@@ -178,7 +180,7 @@ def running_server(url: str, data_dir: Path, *, extra_env: dict | None = None) -
     base = f"http://127.0.0.1:{port}"
     try:
         _wait_until_up(base, server, data_dir / "server.log")
-        yield base
+        yield base, server.pid
     finally:
         server.terminate()
         try:
@@ -208,6 +210,7 @@ class Burst:
 
     kind: str
     wall_s: float
+    server_cpu_s: float = float("nan")
     statuses: list[int | None] = field(default_factory=list)
     latencies_ms: list[float] = field(default_factory=list)
     failures: list[str] = field(default_factory=list)
@@ -280,6 +283,12 @@ async def fire(base: str, kind: str, requests: list[tuple], *, bound_s: float) -
     return burst
 
 
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of process ``pid`` (Linux /proc; one uvicorn process)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def health_answers(base: str, *, timeout_s: float = 10.0) -> bool:
     try:
         return httpx.get(f"{base}{API}/health", timeout=timeout_s).status_code == 200
@@ -297,10 +306,13 @@ def run_scenario(
     )
     tokens = iter(seeded.fresh_tokens)
     bursts = []
-    with running_server(url, data_dir) as base:
+    with running_server(url, data_dir) as (base, pid):
         for kind in KINDS:
             requests = requests_of(kind, seeded, tokens, concurrency)
-            bursts.append(asyncio.run(fire(base, kind, requests, bound_s=bound_s)))
+            cpu_before = cpu_seconds(pid)
+            burst = asyncio.run(fire(base, kind, requests, bound_s=bound_s))
+            burst.server_cpu_s = cpu_seconds(pid) - cpu_before
+            bursts.append(burst)
         healthy = health_answers(base)
     return bursts, healthy
 
@@ -308,15 +320,16 @@ def run_scenario(
 def table(database: str, bursts: list[Burst]) -> str:
     rows = [
         f"| {database} | kind | answered < 500 | 5xx or none | requests/s | p50 (ms) | "
-        "p95 (ms) | max (ms) |",
-        "|---|---|---:|---:|---:|---:|---:|---:|",
+        "p95 (ms) | max (ms) | server CPU / req (ms) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for b in bursts:
         n = len(b.statuses)
         rows.append(
             f"| {database} | {b.kind} | {b.answered_ok}/{n} | {n - b.answered_ok} | "
             f"{n / b.wall_s:.0f} | {b.p(50):.0f} | {b.p(95):.0f} | "
-            f"{max(b.latencies_ms, default=float('nan')):.0f} |"
+            f"{max(b.latencies_ms, default=float('nan')):.0f} | "
+            f"{b.server_cpu_s * 1000 / n:.1f} |"
         )
     return "\n".join(rows)
 

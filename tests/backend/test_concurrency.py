@@ -1,9 +1,9 @@
 """The real server under 200 concurrent requests of each kind answers every one (issue 16).
 
-Before the fix, the first burst (token first use) ended in 500 "database is locked" after
-30 s on SQLite and hung the server for good on PostgreSQL: a request held a database
-connection (and the token's write lock) while waiting for a thread held by requests waiting
-for a connection. The scenario (seeding, ``hammurabi serve`` on a free loopback port, the
+Before the fix (6374d57) both tests failed: the first burst (token first use) got 200 × 500
+after ~30 s on both databases, and on SQLite the later bursts and /health got no answer
+within 45 s: a request held a database connection (and the token's write lock) while
+waiting for a thread held by requests waiting for a connection. The scenario (seeding, ``hammurabi serve`` on a free loopback port, the
 bursts) is bench/concurrency.py's, which also measures it for docs/benchmarks.md.
 """
 
@@ -13,7 +13,13 @@ import importlib.util
 import sys
 from pathlib import Path
 
+import anyio.to_thread
 import pytest
+from fastapi.testclient import TestClient
+
+from backend.db import POOL_MARGIN
+from backend.main import create_app
+from backend.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[2]
 CONCURRENCY = 200
@@ -66,3 +72,53 @@ def test_postgres_server_answers_200_concurrent_requests_of_each_kind(tmp_path):
                 url, tmp_path, concurrency=CONCURRENCY, asset_bytes=ASSET_BYTES, bound_s=BOUND_S
             )
         )
+
+
+def test_threads_sessions_and_connections_come_from_one_setting(sqlite_url, tmp_path):
+    settings = Settings(
+        _env_file=None,
+        environment="test",
+        data_dir=tmp_path,
+        database_url=sqlite_url,
+        frontend_dist=tmp_path / "no-frontend",
+        http_threads=7,
+    )
+    app = create_app(settings)
+    try:
+        pool = app.state.engine.pool
+        assert (pool.size(), pool._max_overflow) == (7 + POOL_MARGIN, 0)
+        assert app.state.session_gate.slots == 7
+        with TestClient(app) as client:  # its lifespan sets the thread limit
+            assert client.portal.call(_thread_limit) == 7
+            assert client.get("/api/v1/health").status_code == 200
+    finally:
+        app.state.engine.dispose()
+
+
+async def _thread_limit() -> float:
+    return anyio.to_thread.current_default_thread_limiter().total_tokens
+
+
+def test_session_gate_admits_at_most_its_slots():
+    from backend.api.deps import SessionGate
+
+    gate, inside, most = SessionGate(3), 0, 0
+
+    async def request():
+        nonlocal inside, most
+        async with gate.admitted():
+            inside += 1
+            most = max(most, inside)
+            await anyio.sleep(0.01)
+            inside -= 1
+
+    async def burst():
+        async with anyio.create_task_group() as tg:
+            for _ in range(20):
+                tg.start_soon(request)
+
+    anyio.run(burst)
+    anyio.run(burst)  # a second event loop gets its own semaphore
+    assert most == 3
+    with pytest.raises(ValueError, match="slots"):
+        SessionGate(0)
