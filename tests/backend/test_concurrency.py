@@ -1,8 +1,8 @@
 """The real server under 200 concurrent requests of each kind answers every one (issue 16).
 
-Before the fix (6374d57) both tests failed: the first burst (token first use) got 200 × 500
-after ~30 s on both databases, and on SQLite the later bursts and /health got no answer
-within 45 s: a request held a database connection (and the token's write lock) while
+Before the fix (6374d57) both tests failed: in the first burst (token first use) no request
+succeeded (500s after ~31 s, the rest unanswered), and bench/concurrency.py showed the
+later bursts and /health unanswered within 45 s on both databases: a request held a database connection (and the token's write lock) while
 waiting for a thread held by requests waiting for a connection. The scenario (seeding, ``hammurabi serve`` on a free loopback port, the
 bursts) is bench/concurrency.py's, which also measures it for docs/benchmarks.md.
 """
