@@ -54,6 +54,19 @@ async def get_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
+class Admission:
+    """One request's place in a :class:`SessionGate`; :meth:`release` gives it back early."""
+
+    def __init__(self, semaphore: anyio.Semaphore):
+        self._semaphore = semaphore
+        self.held = True
+
+    def release(self) -> None:
+        if self.held:
+            self.held = False
+            self._semaphore.release()
+
+
 class SessionGate:
     """Admits at most ``slots`` requests holding a session at once (see the module docstring).
 
@@ -67,13 +80,17 @@ class SessionGate:
         self._semaphores: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
     @asynccontextmanager
-    async def admitted(self) -> AsyncIterator[None]:
+    async def admitted(self) -> AsyncIterator[Admission]:
         loop = asyncio.get_running_loop()
         semaphore = self._semaphores.get(loop)
         if semaphore is None:
             semaphore = self._semaphores[loop] = anyio.Semaphore(self.slots)
-        async with semaphore:
-            yield
+        await semaphore.acquire()
+        admission = Admission(semaphore)
+        try:
+            yield admission
+        finally:
+            admission.release()
 
 
 async def run_unlimited(func, *args):
@@ -99,15 +116,28 @@ def _end_session(session: Session, ok: bool) -> None:
 async def get_session(request: Request) -> AsyncIterator[Session]:
     """The request's session: admitted by the app's :class:`SessionGate`, committed when the
     route returns and rolled back when it raises (as ``backend.db.session_scope``)."""
-    async with request.app.state.session_gate.admitted():
+    async with request.app.state.session_gate.admitted() as admission:
         # Making a session does no I/O: no thread needed. Ending one does.
         session = request.app.state.sessionmaker()
+        session.info["admission"] = admission
         try:
             yield session
         except BaseException:
             await run_unlimited(_end_session, session, False)
             raise
         await run_unlimited(_end_session, session, True)
+
+
+async def release_session(session: Session) -> None:
+    """Commit the request's ``session`` now and give its place in the gate back.
+
+    For a route that is done with the database before a long wait (a request body trickling
+    in) so that it does not keep other requests from the database meanwhile. The session
+    must not be used again (objects loaded from it stay readable); for more database work,
+    enter ``request.app.state.session_gate.admitted()`` again and use a new session.
+    """
+    await run_unlimited(session.commit)
+    session.info["admission"].release()
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
@@ -251,6 +281,7 @@ __all__ = [
     "SettingsDep",
     "StaffUser",
     "load_tablet",
+    "release_session",
     "require_editable_tablet",
     "require_institution",
     "require_readable_tablet",

@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import anyio.to_thread
+import httpx
 import pytest
 from fastapi.testclient import TestClient
 
@@ -122,3 +123,54 @@ def test_session_gate_admits_at_most_its_slots():
     assert most == 3
     with pytest.raises(ValueError, match="slots"):
         SessionGate(0)
+
+
+def test_a_trickling_upload_leaves_the_database_to_others(app, world):
+    """A chunk whose body arrives slowly gives its place in the gate back (release_session):
+    with a gate of one place, an anonymous read is answered while the body still trickles."""
+    from backend.api.deps import SessionGate
+
+    app.state.session_gate = SessionGate(1)
+    staff = world.headers("staff_own")
+
+    async def scenario() -> tuple[int, bool]:
+        streaming, answered = anyio.Event(), anyio.Event()
+        waited_in_vain = []
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+            created = await client.post(
+                "/api/v1/uploads",
+                json={"tablet_id": world.private_a, "filename": "scan.zip", "size_bytes": 1000},
+                headers=staff,
+            )
+            assert created.status_code == 201, created.text
+            upload_id = created.json()["id"]
+
+            async def body():
+                yield b"x" * 100
+                streaming.set()  # the route asks for more: it is in its body loop
+                with anyio.move_on_after(10) as wait:
+                    await answered.wait()
+                waited_in_vain.append(wait.cancelled_caught)
+                yield b"x" * 900
+
+            async def put():
+                response = await client.put(
+                    f"/api/v1/uploads/{upload_id}/chunks",
+                    params={"offset": 0},
+                    content=body(),
+                    headers=staff,
+                )
+                assert response.status_code == 200, response.text
+
+            async with anyio.create_task_group() as tg:
+                tg.start_soon(put)
+                await streaming.wait()
+                read = await client.get(f"/api/v1/tablets/{world.public_a}")
+                answered.set()
+        return read.status_code, waited_in_vain == [False]
+
+    status, read_while_trickling = anyio.run(scenario)
+    assert status == 200
+    # Else the read waited for the upload's place, and the body for the read, for 10 s.
+    assert read_while_trickling
