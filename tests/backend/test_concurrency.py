@@ -17,10 +17,12 @@ import anyio.to_thread
 import httpx
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy import func, select
 
-from backend.db import POOL_MARGIN
+from backend.db import POOL_MARGIN, make_engine
 from backend.main import create_app
 from backend.settings import Settings
+from backend.tables import ApiToken
 
 ROOT = Path(__file__).resolve().parents[2]
 CONCURRENCY = 200
@@ -41,7 +43,7 @@ def _bench():
 bench = _bench()
 
 
-def _check(bursts, healthy: bool) -> None:
+def _check(url: str, bursts, healthy: bool) -> None:
     assert [b.kind for b in bursts] == list(bench.KINDS)
     for burst in bursts:
         assert len(burst.statuses) == CONCURRENCY, burst.kind
@@ -52,15 +54,26 @@ def _check(bursts, healthy: bool) -> None:
         assert not burst.failures, f"{burst.kind}: {burst.failures[:3]}"
         assert burst.wall_s < BOUND_S
     assert healthy, "/health did not answer after the bursts"
+    # Behaviour kept: every token used was stamped (its short transaction committed).
+    engine = make_engine(url)
+    try:
+        with engine.connect() as conn:
+            stamped = conn.scalar(
+                select(func.count()).select_from(ApiToken).where(ApiToken.last_used_at.is_not(None))
+            )
+    finally:
+        engine.dispose()
+    assert stamped == bench.tokens_needed(CONCURRENCY)
 
 
 @pytest.mark.slow
 def test_sqlite_server_answers_200_concurrent_requests_of_each_kind(tmp_path):
     url = f"sqlite:///{tmp_path / 'hammurabi.db'}"
     _check(
+        url,
         *bench.run_scenario(
             url, tmp_path, concurrency=CONCURRENCY, asset_bytes=ASSET_BYTES, bound_s=BOUND_S
-        )
+        ),
     )
 
 
@@ -69,9 +82,10 @@ def test_sqlite_server_answers_200_concurrent_requests_of_each_kind(tmp_path):
 def test_postgres_server_answers_200_concurrent_requests_of_each_kind(tmp_path):
     with bench.throwaway_postgres() as url:
         _check(
+            url,
             *bench.run_scenario(
                 url, tmp_path, concurrency=CONCURRENCY, asset_bytes=ASSET_BYTES, bound_s=BOUND_S
-            )
+            ),
         )
 
 
