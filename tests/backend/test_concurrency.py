@@ -1,10 +1,14 @@
-"""The real server under 200 concurrent requests of each kind answers every one (issue 16).
+"""No deadlock at any concurrency (issue 16 item 2).
 
-Before the fix (6374d57) both tests failed: in the first burst (token first use) no request
-succeeded (500s after ~31 s, the rest unanswered), and bench/concurrency.py showed the
-later bursts and /health unanswered within 45 s on both databases: a request held a database connection (and the token's write lock) while
-waiting for a thread held by requests waiting for a connection. The scenario (seeding, ``hammurabi serve`` on a free loopback port, the
-bursts) is bench/concurrency.py's, which also measures it for docs/benchmarks.md.
+The real server under 200 concurrent requests of each kind answers every one, on SQLite and
+on PostgreSQL. Before the fix (6374d57) both failed: in the first burst (token first use)
+no request succeeded (500s after ~31 s, the rest unanswered), and bench/concurrency.py
+showed the later bursts and /health unanswered within 45 s on both databases: a request
+held a database connection (and the token's write lock) while waiting for a thread held by
+requests waiting for a connection. The scenario (seeding, ``hammurabi serve`` on a free
+loopback port, the bursts) is bench/concurrency.py's, which also measures it for
+docs/benchmarks.md. In-process tests check the sizing from one setting, the gate's limit
+and that a trickling upload leaves the gate.
 """
 
 from __future__ import annotations
