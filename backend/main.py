@@ -14,12 +14,14 @@ import importlib
 import logging
 from contextlib import asynccontextmanager
 
+import anyio.to_thread
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.staticfiles import StaticFiles
 
 from backend.api import auth, institutions, tablets, tokens, users
-from backend.db import make_engine, make_sessionmaker
+from backend.api.deps import SessionGate
+from backend.db import make_engine, make_sessionmaker, server_pool_size
 from backend.errors import install_error_handlers
 from backend.headers import SecurityHeaders
 from backend.search import FacetSnapshot, invalidate_on_tablet_writes
@@ -48,10 +50,14 @@ def _optional_routers() -> list:
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings if settings is not None else get_settings()
-    engine = make_engine(settings.resolved_database_url)
+    engine = make_engine(
+        settings.resolved_database_url, pool_size=server_pool_size(settings.http_threads)
+    )
 
     @asynccontextmanager
     async def lifespan(_app: FastAPI):
+        # Threads, admitted sessions and connections come from one setting (backend.db).
+        anyio.to_thread.current_default_thread_limiter().total_tokens = settings.http_threads
         yield
         engine.dispose()
 
@@ -66,6 +72,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.engine = engine
     app.state.sessionmaker = make_sessionmaker(engine)
+    app.state.session_gate = SessionGate(settings.http_threads)
     app.state.session_signer = SessionSigner(
         settings.signing_secret, max_age_s=settings.session_max_age_s
     )

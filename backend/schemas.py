@@ -7,6 +7,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from backend.db import RowId
 from backend.tables import Role
 
 P_NUMBER_PATTERN = r"^[PQX]\d{6}$"
@@ -60,7 +61,7 @@ class UserCreate(BaseModel):
     email: str = Field(pattern=EMAIL_PATTERN, max_length=320)
     password: str | None = Field(default=None, min_length=8, max_length=1000)
     role: Role = Role.reader
-    institution_id: int | None = None
+    institution_id: RowId | None = None
 
     @field_validator("email", mode="before")
     @classmethod
@@ -71,7 +72,7 @@ class UserCreate(BaseModel):
 class UserUpdate(BaseModel):
     password: str | None = Field(default=None, min_length=8, max_length=1000)
     role: Role | None = None
-    institution_id: int | None = None
+    institution_id: RowId | None = None
     is_active: bool | None = None
 
 
@@ -148,14 +149,14 @@ class TabletFields(BaseModel):
 
 class TabletCreate(TabletFields):
     designation: str = Field(min_length=1, max_length=300)
-    institution_id: int | None = Field(
+    institution_id: RowId | None = Field(
         default=None, description="admins only; staff create for their own institution"
     )
 
 
 class TabletUpdate(TabletFields):
     designation: str | None = Field(default=None, min_length=1, max_length=300)
-    institution_id: int | None = Field(default=None, description="admins only")
+    institution_id: RowId | None = Field(default=None, description="admins only")
 
 
 class TabletOut(ORMModel):

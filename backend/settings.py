@@ -79,6 +79,13 @@ class Settings(BaseSettings):
         default=None, description="built frontend served at /; default frontend/dist if present"
     )
     api_prefix: str = "/api/v1"
+    http_threads: int = Field(
+        default=40,
+        ge=2,
+        le=1000,
+        description="threads for sync routes per server process; also the requests holding a "
+        "database session at once, and (plus 10) the size of the connection pool (backend.db)",
+    )
 
     # search
     search_max_page_size: int = 200

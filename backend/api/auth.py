@@ -103,10 +103,16 @@ async def login(body: LoginIn, request: Request, response: Response, settings: S
     limiter = login_limiter(request)
     who = _attempt(request, limiter, account=body.email, where="body.email")
     factory = request.app.state.sessionmaker
-    candidate = await to_thread.run_sync(_user_by_email, factory, body.email)
+    # Each transaction takes its place in the session gate (backend.db explains why).
+    gate = request.app.state.session_gate
+    async with gate.admitted():
+        candidate = await to_thread.run_sync(_user_by_email, factory, body.email)
     async with _login_slots(request):
         matches = await to_thread.run_sync(crud.password_matches, candidate, body.password)
-    user = await to_thread.run_sync(_active_user, factory, candidate.id) if matches else None
+    user = None
+    if matches:
+        async with gate.admitted():
+            user = await to_thread.run_sync(_active_user, factory, candidate.id)
     if user is None:  # wrong password, or disabled or deleted meanwhile
         raise ApiError(401, "wrong e-mail or password", where="body.password")
     limiter.succeeded(**who)

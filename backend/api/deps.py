@@ -5,11 +5,18 @@ Routes never repeat 401/403/404 checks: they ask for ``CurrentUser``, ``AdminUse
 right error.
 
 - ``SessionDep``: a session committed when the route function returns (scope="function", so
-  a failing commit is a 500 and never a success response), rolled back on errors.
+  a failing commit is a 500 and never a success response), rolled back on errors. At most
+  ``http_threads`` requests hold one at once (:class:`SessionGate`; why: backend.db), and it
+  is ended in a thread outside the pool's limit, so a request never holds a connection or
+  a lock while it waits for a pool thread that only it could free.
+- Ids in paths, queries and bodies are ``RowId`` (1 … 2**31-1, backend.db): out of range
+  is a 422 naming the parameter, on SQLite and PostgreSQL alike.
 - Authentication: ``Authorization: Bearer <api token>`` or the signed session cookie. A
   bad bearer token is a 401 (a rig agent must notice); a bad cookie is just anonymous, and
   so is a cookie whose session version is no longer the user's (logged out, password
-  changed, account disabled).
+  changed, account disabled). Authentication ends its own short transaction (the token's
+  ``last_used_at`` write included), so that write lock is never held while the route waits
+  for its thread.
 - Tablet path parameter ``{tablet_id}``: our integer id or the P-number (``P001229``); a
   record the user may not read is a 404 (its existence is not revealed); a readable record
   the user may not edit is a 403.
@@ -21,19 +28,23 @@ loaded, so the same rule applies everywhere.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import asyncio
+import weakref
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 from typing import Annotated
 
+import anyio
 from fastapi import Depends, Path, Request
 from fastapi.security import APIKeyCookie, HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
 from backend import crud
-from backend.db import session_scope
+from backend.db import MAX_ID, RowId
 from backend.errors import ApiError, forbidden, not_found, unauthorized
 from backend.security import SessionSigner
 from backend.settings import Settings
-from backend.tables import Role, Tablet, User
+from backend.tables import Institution, Role, Tablet, User
 
 TABLET_REF_PATTERN = r"^(\d{1,18}|[PQX]\d{6})$"
 
@@ -43,9 +54,90 @@ async def get_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
-def get_session(request: Request) -> Iterator[Session]:
-    with session_scope(request.app.state.sessionmaker) as session:
-        yield session
+class Admission:
+    """One request's place in a :class:`SessionGate`; :meth:`release` gives it back early."""
+
+    def __init__(self, semaphore: anyio.Semaphore):
+        self._semaphore = semaphore
+        self.held = True
+
+    def release(self) -> None:
+        if self.held:
+            self.held = False
+            self._semaphore.release()
+
+
+class SessionGate:
+    """Admits at most ``slots`` requests holding a session at once (see the module docstring).
+
+    One :class:`anyio.Semaphore` per event loop (a TestClient may run several loops).
+    """
+
+    def __init__(self, slots: int):
+        if slots < 1:
+            raise ValueError(f"slots: need at least 1, got {slots}")
+        self.slots = slots
+        self._semaphores: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+    @asynccontextmanager
+    async def admitted(self) -> AsyncIterator[Admission]:
+        loop = asyncio.get_running_loop()
+        semaphore = self._semaphores.get(loop)
+        if semaphore is None:
+            semaphore = self._semaphores[loop] = anyio.Semaphore(self.slots)
+        await semaphore.acquire()
+        admission = Admission(semaphore)
+        try:
+            yield admission
+        finally:
+            admission.release()
+
+
+async def run_unlimited(func, *args):
+    """``func(*args)`` in a worker thread outside the pool's capacity limit.
+
+    For ending a session that holds a connection (commit, rollback, close): waiting for a
+    thread of the shared pool while holding it is the deadlock this module avoids.
+    FastAPI ends sync ``yield`` dependencies the same way.
+    """
+    return await anyio.to_thread.run_sync(func, *args, limiter=anyio.CapacityLimiter(1))
+
+
+def _end_session(session: Session, ok: bool) -> None:
+    try:
+        if ok:
+            session.commit()
+        else:
+            session.rollback()
+    finally:
+        session.close()
+
+
+async def get_session(request: Request) -> AsyncIterator[Session]:
+    """The request's session: admitted by the app's :class:`SessionGate`, committed when the
+    route returns and rolled back when it raises (as ``backend.db.session_scope``)."""
+    async with request.app.state.session_gate.admitted() as admission:
+        # Making a session does no I/O: no thread needed. Ending one does.
+        session = request.app.state.sessionmaker()
+        session.info["admission"] = admission
+        try:
+            yield session
+        except BaseException:
+            await run_unlimited(_end_session, session, False)
+            raise
+        await run_unlimited(_end_session, session, True)
+
+
+async def release_session(session: Session) -> None:
+    """Commit the request's ``session`` now and give its place in the gate back.
+
+    For a route that is done with the database before a long wait (a request body trickling
+    in) so that it does not keep other requests from the database meanwhile. The session
+    must not be used again (objects loaded from it stay readable); for more database work,
+    enter ``request.app.state.session_gate.admitted()`` again and use a new session.
+    """
+    await run_unlimited(session.commit)
+    session.info["admission"].release()
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
@@ -66,6 +158,9 @@ def get_optional_user(
         if bearer is None or not bearer.credentials:
             raise unauthorized("malformed Authorization header: use 'Bearer <token>'")
         user = crud.user_for_token(session, secret=bearer.credentials)
+        # Ends the transaction that may have taken the write lock (last_used_at) in this
+        # very hop, before the route waits for its own thread.
+        session.commit()
         if user is None:
             raise unauthorized("invalid or revoked API token")
         return user
@@ -88,7 +183,10 @@ def get_optional_user(
 OptionalUser = Annotated[User | None, Depends(get_optional_user)]
 
 
-def get_current_user(user: OptionalUser) -> User:
+# The role checks below only read loaded columns: async, so they cost no hop to the pool.
+
+
+async def get_current_user(user: OptionalUser) -> User:
     if user is None:
         raise unauthorized()
     return user
@@ -97,13 +195,13 @@ def get_current_user(user: OptionalUser) -> User:
 CurrentUser = Annotated[User, Depends(get_current_user)]
 
 
-def get_admin_user(user: CurrentUser) -> User:
+async def get_admin_user(user: CurrentUser) -> User:
     if user.role != Role.admin:
         raise forbidden("admins only")
     return user
 
 
-def get_staff_user(user: CurrentUser) -> User:
+async def get_staff_user(user: CurrentUser) -> User:
     if user.role not in (Role.admin, Role.staff):
         raise forbidden("staff or admins only")
     return user
@@ -116,10 +214,19 @@ StaffUser = Annotated[User, Depends(get_staff_user)]
 # --- tablets --------------------------------------------------------------------------------
 
 
+def require_institution(session: Session, institution_id: int | None) -> None:
+    """A 422 naming ``body.institution_id`` when that institution does not exist (rather
+    than the database's foreign-key error, a 500)."""
+    if institution_id is not None and session.get(Institution, institution_id) is None:
+        raise ApiError(422, f"no institution {institution_id}", where="body.institution_id")
+
+
 def load_tablet(session: Session, tablet_ref: str | int, user: User | None) -> Tablet | None:
     ref = str(tablet_ref)
     if ref.isdigit():
-        return crud.get_tablet(session, tablet_id=int(ref))
+        tablet_id = int(ref)
+        # Past MAX_ID no row can exist (and PostgreSQL's INTEGER would overflow).
+        return crud.get_tablet(session, tablet_id=tablet_id) if tablet_id <= MAX_ID else None
     # A P-number may be held by several institutions: the one this user means (crud).
     return crud.get_tablet_by_p_number(session, p_number=ref, user=user)
 
@@ -169,10 +276,13 @@ __all__ = [
     "EditableTablet",
     "OptionalUser",
     "ReadableTablet",
+    "RowId",
     "SessionDep",
     "SettingsDep",
     "StaffUser",
     "load_tablet",
+    "release_session",
     "require_editable_tablet",
+    "require_institution",
     "require_readable_tablet",
 ]

@@ -10,12 +10,12 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Path, Request
+from fastapi import APIRouter, Depends, Request
 from pydantic import BaseModel
 from sqlalchemy.orm import Session
 
 from backend import dispatch, jobs, queue
-from backend.api.deps import OptionalUser, SessionDep
+from backend.api.deps import OptionalUser, RowId, SessionDep
 from backend.api.models import StorageErrorRoute, check_tablet_access
 from backend.errors import ApiError, not_found
 from backend.tables import Job, JobState
@@ -96,13 +96,13 @@ def _job(session: Session, user, job_id: int, *, edit: bool) -> Job:
 
 
 @router.get("/{job_id}", response_model=JobOut)
-def read_job(job_id: Annotated[int, Path(ge=1)], session: SessionDep, user: OptionalUser):
+def read_job(job_id: RowId, session: SessionDep, user: OptionalUser):
     return JobOut.of(_job(session, user, job_id, edit=False))
 
 
 @router.post("/{job_id}/retry", response_model=JobOut)
 def retry_job(
-    job_id: Annotated[int, Path(ge=1)],
+    job_id: RowId,
     session: SessionDep,
     user: OptionalUser,
     dispatcher: DispatcherDep,

@@ -17,14 +17,14 @@ from datetime import UTC, datetime
 from email.utils import format_datetime, parsedate_to_datetime
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Path, Query, Request, Response
+from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import JSONResponse, StreamingResponse
 from fastapi.routing import APIRoute
 from pydantic import BaseModel
 from sqlalchemy.orm import Session
 
 from backend import crud
-from backend.api.deps import OptionalUser, SessionDep, SettingsDep
+from backend.api.deps import OptionalUser, RowId, SessionDep, SettingsDep
 from backend.errors import error_body, forbidden, not_found, unauthorized
 from backend.storage import Storage, StorageError, storage_from_settings
 from backend.tables import Model, Scan, Tablet, User
@@ -114,9 +114,7 @@ class ModelOut(BaseModel):
 router = APIRouter(prefix="/models", tags=["models"], route_class=StorageErrorRoute)
 
 
-def get_readable_model(
-    model_id: Annotated[int, Path(ge=1)], session: SessionDep, user: OptionalUser
-) -> Model:
+def get_readable_model(model_id: RowId, session: SessionDep, user: OptionalUser) -> Model:
     model = session.get(Model, model_id)
     if model is None:
         raise not_found(f"model {model_id}", where="model_id")
@@ -132,7 +130,7 @@ ReadableModel = Annotated[Model, Depends(get_readable_model)]
 
 @router.get("", response_model=list[ModelOut])
 def list_tablet_models(
-    tablet_id: Annotated[int, Query(ge=1)],
+    tablet_id: RowId,
     session: SessionDep,
     user: OptionalUser,
     settings: SettingsDep,

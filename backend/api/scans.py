@@ -7,14 +7,13 @@ latest reconstruction job and the model versions made from it.
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Annotated
 
-from fastapi import APIRouter, Path
+from fastapi import APIRouter
 from pydantic import BaseModel
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from backend.api.deps import OptionalUser, ReadableTablet, SessionDep, SettingsDep
+from backend.api.deps import OptionalUser, ReadableTablet, RowId, SessionDep, SettingsDep
 from backend.api.jobs import JobOut
 from backend.api.models import ModelOut, StorageErrorRoute, check_tablet_access, models_of_scan
 from backend.errors import not_found
@@ -62,7 +61,7 @@ def list_scans(tablet: ReadableTablet, session: SessionDep, settings: SettingsDe
 
 @router.get("/scans/{scan_id}", response_model=ScanOut)
 def read_scan(
-    scan_id: Annotated[int, Path(ge=1)],
+    scan_id: RowId,
     session: SessionDep,
     user: OptionalUser,
     settings: SettingsDep,

@@ -23,6 +23,7 @@ from backend.api.deps import (
     SessionDep,
     SettingsDep,
     StaffUser,
+    require_institution,
 )
 from backend.errors import ApiError, conflict, forbidden
 from backend.schemas import FacetValue, SearchPage, TabletCreate, TabletOut, TabletUpdate
@@ -186,6 +187,7 @@ def create(body: TabletCreate, session: SessionDep, settings: SettingsDep, user:
         institution_id = user.institution_id
     else:
         institution_id = body.institution_id
+        require_institution(session, institution_id)
     fields = body.model_dump(exclude={"institution_id"}, exclude_none=True)
     try:
         tablet = crud.create_tablet(session, fields=fields, institution_id=institution_id)
@@ -212,6 +214,8 @@ def update(
     moves = "institution_id" in changes and changes["institution_id"] != tablet.institution_id
     if moves and (user is None or user.role != Role.admin):
         raise forbidden("only admins move a record to another institution", "institution_id")
+    if moves:
+        require_institution(session, changes["institution_id"])
     for required in ("designation", "is_public", "extra"):
         if required in changes and changes[required] is None:
             raise ApiError(422, f"{required}: must not be null", where=f"body.{required}")

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from backend import crud
-from backend.api.deps import CurrentUser, SessionDep
+from backend.api.deps import CurrentUser, RowId, SessionDep
 from backend.errors import not_found
 from backend.schemas import TokenCreate, TokenCreated, TokenOut
 from backend.tables import Role
@@ -25,7 +25,7 @@ def create_token(body: TokenCreate, session: SessionDep, user: CurrentUser):
 
 
 @router.delete("/{token_id}", response_model=TokenOut)
-def revoke_token(token_id: int, session: SessionDep, user: CurrentUser):
+def revoke_token(token_id: RowId, session: SessionDep, user: CurrentUser):
     """Revoke one of your tokens (admins: anyone's)."""
     token = crud.get_token(session, token_id=token_id)
     if token is None or (token.user_id != user.id and user.role != Role.admin):

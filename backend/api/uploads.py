@@ -19,7 +19,7 @@ from pydantic import BaseModel, Field
 from starlette.requests import ClientDisconnect
 
 from backend import uploads
-from backend.api.deps import CurrentUser, SessionDep, SettingsDep
+from backend.api.deps import CurrentUser, RowId, SessionDep, SettingsDep, release_session
 from backend.api.jobs import DispatcherDep, JobOut, send
 from backend.api.models import StorageDep, StorageErrorRoute, check_tablet_access
 from backend.api.scans import ScanOut
@@ -33,7 +33,7 @@ SHA256_PATTERN = r"^[0-9a-fA-F]{64}$"
 
 
 class UploadCreate(BaseModel):
-    tablet_id: int = Field(ge=1)
+    tablet_id: RowId
     filename: str = Field(min_length=1, max_length=255, pattern=r"^[^/\\\x00]+\.[zZ][iI][pP]$")
     size_bytes: int = Field(gt=0)
 
@@ -204,8 +204,9 @@ async def put_chunk(
         )
         if refusal is not None:
             raise refusal
-    # The checks are done: end the read transaction before a long body transfer.
-    await run_in_threadpool(session.commit)
+    # The checks are done: end the transaction and leave the session gate (backend.db)
+    # before a body transfer that may take minutes.
+    await release_session(session)
     directory = uploads_dir(settings)
     path = uploads.part_path(directory, upload.id)
     fd = await run_in_threadpool(_open_part, path)
@@ -252,13 +253,14 @@ async def put_chunk(
     finally:
         os.close(fd)
     if pos > offset:
-        upload = await run_in_threadpool(
-            uploads.record_range,
-            request.app.state.sessionmaker,
-            upload_id=upload.id,
-            start=offset,
-            end=pos,
-        )
+        async with request.app.state.session_gate.admitted():
+            upload = await run_in_threadpool(
+                uploads.record_range,
+                request.app.state.sessionmaker,
+                upload_id=upload.id,
+                start=offset,
+                end=pos,
+            )
     if refusal is not None:
         raise refusal
     if disconnected:

@@ -5,17 +5,11 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from backend import crud
-from backend.api.deps import AdminUser, SessionDep
+from backend.api.deps import AdminUser, RowId, SessionDep, require_institution
 from backend.errors import ApiError, not_found
 from backend.schemas import UserCreate, UserOut, UserUpdate
-from backend.tables import Institution
 
 router = APIRouter(prefix="/users", tags=["users"])
-
-
-def _check_institution(session, institution_id: int | None) -> None:
-    if institution_id is not None and session.get(Institution, institution_id) is None:
-        raise ApiError(422, f"no institution {institution_id}", where="body.institution_id")
 
 
 @router.get("", response_model=list[UserOut])
@@ -25,7 +19,7 @@ def list_users(session: SessionDep, _admin: AdminUser):
 
 @router.post("", response_model=UserOut, status_code=201)
 def create_user(body: UserCreate, session: SessionDep, _admin: AdminUser):
-    _check_institution(session, body.institution_id)
+    require_institution(session, body.institution_id)
     try:
         user = crud.create_user(
             session,
@@ -42,7 +36,7 @@ def create_user(body: UserCreate, session: SessionDep, _admin: AdminUser):
 
 
 @router.get("/{user_id}", response_model=UserOut)
-def read_user(user_id: int, session: SessionDep, _admin: AdminUser):
+def read_user(user_id: RowId, session: SessionDep, _admin: AdminUser):
     user = crud.get_user(session, user_id=user_id)
     if user is None:
         raise not_found(f"user {user_id}", where="user_id")
@@ -50,7 +44,7 @@ def read_user(user_id: int, session: SessionDep, _admin: AdminUser):
 
 
 @router.patch("/{user_id}", response_model=UserOut)
-def update_user(user_id: int, body: UserUpdate, session: SessionDep, _admin: AdminUser):
+def update_user(user_id: RowId, body: UserUpdate, session: SessionDep, _admin: AdminUser):
     user = crud.get_user(session, user_id=user_id)
     if user is None:
         raise not_found(f"user {user_id}", where="user_id")
@@ -58,7 +52,7 @@ def update_user(user_id: int, body: UserUpdate, session: SessionDep, _admin: Adm
     for required in ("role", "is_active"):
         if required in changes and changes[required] is None:
             raise ApiError(422, f"{required}: must not be null", where=f"body.{required}")
-    _check_institution(session, changes.get("institution_id"))
+    require_institution(session, changes.get("institution_id"))
     try:
         user = crud.update_user(session, user=user, changes=changes)
     except ValueError as exc:
