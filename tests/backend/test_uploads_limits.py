@@ -11,9 +11,9 @@ import threading
 from datetime import UTC, datetime, timedelta
 
 import pytest
+import test_uploads as helpers  # the bundle helpers (tests/backend is on pythonpath)
 from sqlalchemy import text
 from sqlalchemy.exc import OperationalError
-import test_uploads as helpers  # the bundle helpers (tests/backend is on pythonpath)
 
 from backend import uploads as uploads_mod
 from backend.api import uploads as api_uploads_mod
