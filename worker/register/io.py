@@ -62,9 +62,11 @@ def load_model_dir(path: str | os.PathLike) -> tuple[ScanCloud, dict]:
         raise RegisterInputError(f"{d}: {exc}") from None
     return cloud, {
         "height_um": height,
+        "normals": normals,
         "mask": mask,
         "albedo": albedo,
         "pixel_size_um": float(pixel),
+        "tablet": scan.get("tablet") if isinstance(scan.get("tablet"), dict) else {},
     }
 
 

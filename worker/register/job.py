@@ -75,7 +75,7 @@ def run_job(job_id: int, session_factory, storage, progress: Callable[..., None]
         progress("register", 0.2, force=True)
         safe = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in name)
         try:
-            files, report = register_model_dirs(dirs, name=safe)
+            files, report = register_model_dirs(dirs, name=safe, designation=name)
         except (RegisterInputError, ValueError) as exc:
             return _fail(session_factory, job_id, f"registration: {exc}")
         files["model.glb"] = files["tablet.glb"]

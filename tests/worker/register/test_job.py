@@ -73,7 +73,8 @@ def test_register_job_stores_a_tablet_model_with_plates(env, tmp_path):
             "tablet.glb",
             "merged.ply",
             "transforms.json",
-            "fatcross/P000001.png",
+            "fatcross/P000001_fatcross_natural.png",
+            "fatcross/P000001_fatcross.pdf",
         ):
             assert name in model.assets, name
         assert model.report["pairs"]
