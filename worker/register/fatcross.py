@@ -17,9 +17,9 @@ finer than the output pixel is averaged, not aliased.
 Natural colour: the albedo lit by one distant light from the upper left at a raking angle, the
 same for every view (Lambert: L = ρ·(a + k·max(0, n·l)), l at polar 70° from the view axis,
 azimuth toward the upper left, as tablets are photographed for publication).
-Curvature: the mean curvature (worker.recon.shading_maps) of the depth map minus a heavily
-smoothed depth map (a band-pass, normalized convolution inside the mask), so the tablet's
-overall shape is removed and only the signs carry contrast.
+Curvature: the mean curvature of the rendered normal field minus a heavily smoothed one (a
+band-pass, normalized convolution inside the mask), so the tablet's overall shape is removed
+and only the signs carry contrast.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 from scipy import ndimage
 
-from worker.recon.shading_maps import encode_signed8, mean_curvature_per_um, robust_scale
+from worker.recon.shading_maps import encode_signed8, robust_scale
 from worker.register.o3d import o3d
 
 __all__ = [
@@ -42,6 +42,7 @@ __all__ = [
     "compose_fatcross",
     "curvature_shading",
     "fatcross_layout",
+    "mean_curvature_from_normals_per_um",
     "natural_colour",
     "raking_light",
     "reduce_image",
@@ -253,9 +254,27 @@ def _masked_gaussian(values: np.ndarray, mask: np.ndarray, sigma_px: float) -> n
     """Normalized convolution (Knutsson & Westin 1993): G∗(v·m) / G∗m, so that the smoothing
     does not pull the surface toward the background at the rim."""
     m = mask.astype(np.float64)
-    num = ndimage.gaussian_filter(np.where(mask, values, 0.0), sigma_px, mode="constant")
+    num = ndimage.gaussian_filter(
+        np.where(mask, np.nan_to_num(values), 0.0), sigma_px, mode="constant"
+    )
     den = ndimage.gaussian_filter(m, sigma_px, mode="constant")
     return np.where(den > 1e-6, num / np.maximum(den, 1e-6), 0.0)
+
+
+def mean_curvature_from_normals_per_um(
+    normals: np.ndarray, mask: np.ndarray, *, pixel_size_um: float, scale_um: float
+) -> np.ndarray:
+    """Mean curvature H (1/µm) of the surface whose unit normals (toward the camera, n_z < 0)
+    are ``normals``: for z = −h, n = (−h_x, −h_y, −1)/√(1+|∇h|²), so the classical
+    H = −½ ∇·(∇h/√(1+|∇h|²)) (do Carmo, Differential Geometry of Curves and Surfaces, 3.3)
+    is ½ ∇·(n_x, n_y); n_x, n_y smoothed inside ``mask`` at σ = ``scale_um`` first. Ridges
+    > 0. NaN off the mask."""
+    sigma_px = scale_um / pixel_size_um
+    nxy = [np.nan_to_num(normals[..., i]) for i in (0, 1)]
+    if sigma_px > 0:
+        nxy = [_masked_gaussian(c, mask, sigma_px) for c in nxy]
+    div = np.gradient(nxy[0], pixel_size_um, axis=1) + np.gradient(nxy[1], pixel_size_um, axis=0)
+    return np.where(mask, 0.5 * div, np.nan)
 
 
 def curvature_shading(
@@ -265,20 +284,27 @@ def curvature_shading(
     detail_scale_um: float | None = None,
     shape_scale_mm: float = 1.5,
 ) -> np.ndarray:
-    """(H, W, 3) uint8 grey on black: mean curvature of the depth map's detail, h − G_σ∗h with
-    σ = ``shape_scale_mm`` (normalized convolution inside the mask), at ``detail_scale_um``
-    (default 1.5 pixels): ridges light, troughs dark, grey 128 = the tablet's own shape.
+    """(H, W, 3) uint8 grey on black: mean curvature of the surface detail, ridges light,
+    troughs dark, grey 128 = the tablet's own shape.
+
+    Computed from the rendered normals (the scans' own where they saw the surface, so the
+    merged mesh's facets do not show): H(n − G_σ∗n) with σ = ``shape_scale_mm`` (a band-pass:
+    normalized convolution inside the mask, the tablet's overall curvature removed) at
+    ``detail_scale_um`` (default 1.5 pixels), :func:`mean_curvature_from_normals_per_um`.
     The display range is the 98th percentile of |H| away from the rim (where the view grazes
     the surface and the curvature is the silhouette's, not a sign's)."""
     pixel_um = 1000.0 / px_per_mm
-    h = render["height_um"]
-    mask = render["mask"] & np.isfinite(h)
+    n = render["normals"]
+    mask = render["mask"] & np.all(np.isfinite(n), axis=-1)
     if not mask.any():
         raise ValueError("render: the mesh is not in view")
-    shape = _masked_gaussian(h, mask, shape_scale_mm * px_per_mm)
-    detail = np.where(mask, h - shape, np.nan)
+    shape_px = shape_scale_mm * px_per_mm
+    detail = np.stack(
+        [np.nan_to_num(n[..., i]) - _masked_gaussian(n[..., i], mask, shape_px) for i in (0, 1)],
+        -1,
+    )
     scale_um = 1.5 * pixel_um if detail_scale_um is None else detail_scale_um
-    k = mean_curvature_per_um(detail, pixel_size_um=pixel_um, scale_um=scale_um)
+    k = mean_curvature_from_normals_per_um(detail, mask, pixel_size_um=pixel_um, scale_um=scale_um)
     rim_px = max(2, int(round(3 * scale_um / pixel_um)))
     inner = ndimage.binary_erosion(mask, iterations=rim_px)
     grey = encode_signed8(k, scale=robust_scale(k[inner] if inner.any() else k))

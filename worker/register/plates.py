@@ -89,6 +89,18 @@ def _caption(kind: str, info: PlateInfo) -> str:
     return f"SIMULATED SCAN, not a measurement of the object; {text}" if info.simulated else text
 
 
+def _wrap(text: str, font, width_px: float) -> list[str]:
+    """``text`` broken at spaces into lines no wider than ``width_px`` (a longer word alone)."""
+    probe = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    lines: list[str] = []
+    for word in text.split(" "):
+        if lines and probe.textlength(f"{lines[-1]} {word}", font=font) <= width_px:
+            lines[-1] = f"{lines[-1]} {word}"
+        else:
+            lines.append(word)
+    return lines
+
+
 def annotated_plate(
     views: dict[str, np.ndarray], *, px_per_mm: float, info: PlateInfo, kind: str
 ) -> tuple[np.ndarray, dict[str, tuple[int, int, int, int]]]:
@@ -109,13 +121,16 @@ def annotated_plate(
     caption = _caption(kind, info)
     licence = f"Licence: {info.licence}"
     probe = ImageDraw.Draw(Image.new("RGB", (1, 1)))
-    text_w = max(
-        probe.textlength(t, font=f)
-        for t, f in ((info.designation, title_font), (caption, font), (licence, font))
+    # Caption and licence wrap to the cross (at least 60 mm); the title is never broken.
+    text_w = max(cross_w, 60.0 * px_per_mm)
+    caption_lines = _wrap(caption, font, text_w)
+    licence_lines = _wrap(licence, font, text_w)
+    widest = max(probe.textlength(t, font=font) for t in caption_lines + licence_lines)
+    width = int(
+        max(cross_w, widest, probe.textlength(info.designation, font=title_font)) + 2 * margin
     )
-    width = int(max(cross_w, text_w, bar_mm * px_per_mm + 4 * text_px)) + 2 * margin
     foot_y = title_h + cross_h + gap
-    height = foot_y + 4 * line + margin
+    height = foot_y + (2 + len(caption_lines) + len(licence_lines)) * line + margin
     canvas = np.zeros((height, width, 3), np.uint8)
     boxes: dict[str, tuple[int, int, int, int]] = {}
     for k, (y, x) in at.items():
@@ -128,8 +143,18 @@ def annotated_plate(
     white = (255, 255, 255)
 
     def text(key: str, xy: tuple[int, int], s: str, f) -> None:
-        draw.text(xy, s, fill=white, font=f)
-        boxes[key] = tuple(int(v) for v in draw.textbbox(xy, s, font=f))
+        x0, y0 = xy
+        found = []
+        for i, part in enumerate(s.split("\n")):
+            draw.text((x0, y0 + i * line), part, fill=white, font=f)
+            found.append(draw.textbbox((x0, y0 + i * line), part, font=f))
+        b = np.array(found)
+        boxes[key] = (
+            int(b[:, 0].min()),
+            int(b[:, 1].min()),
+            int(b[:, 2].max()),
+            int(b[:, 3].max()),
+        )
 
     text("title", (margin, margin // 2), info.designation, title_font)
     for k, (x0, y0, _, _) in ((k, boxes[f"view_{k}"]) for k in at):
@@ -144,8 +169,10 @@ def annotated_plate(
         draw.line([x, by - tick, x, by], fill=white, width=1)
     text("scale_label", (bx + bar_px + text_px, by - text_px // 2), _bar_label(bar_mm), font)
     boxes["scale"] = (bx, by - 2 * thick, bx + bar_px, by + thick)
-    text("caption", (margin, foot_y + line + line // 2), caption, font)
-    text("licence", (margin, foot_y + 2 * line + line // 2), licence, font)
+    y = foot_y + line + line // 2
+    text("caption", (margin, y), "\n".join(caption_lines), font)
+    y += line * len(caption_lines)
+    text("licence", (margin, y), "\n".join(licence_lines), font)
     return np.asarray(pil), boxes
 
 

@@ -18,6 +18,7 @@ from worker.register.fatcross import (
     FaceMaps,
     curvature_shading,
     fatcross_layout,
+    mean_curvature_from_normals_per_um,
     natural_colour,
     raking_light,
     reduce_image,
@@ -47,8 +48,8 @@ def _wedged_surface(shape=(200, 240), *, radius_mm: float | None = None):
         xc = gx - gx.mean()
         h = h + 1000.0 * (np.sqrt(radius_mm**2 - xc**2) - radius_mm)
     dy, dx = np.gradient(h, 1000.0 / PX)
-    # height is toward the camera (−z): the outward normal is (dh/dx, dh/dy, −1), normalized.
-    n = np.stack([dx, dy, -np.ones_like(h)], -1)
+    # height is toward the camera (z = −h): the outward normal is (−h_x, −h_y, −1), normalized.
+    n = np.stack([-dx, -dy, -np.ones_like(h)], -1)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     mask = np.ones(shape, bool)
     return {
@@ -91,11 +92,25 @@ def test_curvature_removes_the_tablets_overall_shape():
     on_wedge = (d < 0.05) & inner
     assert abs(np.median(grey[between]) - 128) <= 1
     assert np.percentile(np.abs(grey[between] - 128), 95) <= 2
-    assert abs(np.median(grey[on_wedge]) - 128) > 40
+    # A wedge's bottom is a trough: dark.
+    assert np.median(grey[on_wedge]) < 128 - 40
     # Without the band-pass the cylinder tints everything between the wedges.
     k = mean_curvature_per_um(render["height_um"], pixel_size_um=1000 / PX, scale_um=75.0)
     plain = encode_signed8(k, scale=robust_scale(k)).astype(float)
     assert abs(np.median(plain[between]) - 128) >= 6
+
+
+def test_curvature_from_normals_of_a_sphere_cap_is_one_over_r():
+    r_um, pixel_um = 20_000.0, 50.0
+    y, x = (np.mgrid[0:201, 0:201] - 100) * pixel_um
+    h = np.sqrt(r_um**2 - x**2 - y**2)  # toward the camera: a dome, a ridge everywhere
+    hy, hx = np.gradient(h, pixel_um)
+    n = np.stack([-hx, -hy, -np.ones_like(h)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    k = mean_curvature_from_normals_per_um(
+        n, np.ones(h.shape, bool), pixel_size_um=pixel_um, scale_um=0.0
+    )
+    assert np.allclose(k[20:-20, 20:-20], 1 / r_um, rtol=0.02)
 
 
 def test_reduce_image_filters_detail_above_the_output_nyquist():
