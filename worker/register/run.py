@@ -9,6 +9,7 @@ import time
 import numpy as np
 from scipy import ndimage
 
+from worker.bundle import is_simulated
 from worker.register.fatcross import FaceMaps
 from worker.register.io import load_model_dir
 from worker.register.merge import grid_mesh, merged_surface, scene_glb
@@ -18,13 +19,6 @@ from worker.register.refine import register_scans
 __all__ = ["register_model_dirs"]
 
 DEFAULT_PX_PER_MM = 600 / 25.4  # 600 dpi
-
-
-def is_simulated(tablet_metadata: dict) -> bool:
-    """Whether a scan's ``scan.tablet`` free metadata says it is simulated:
-    ``"simulated": "true"`` or the simulator's ``"simulator"`` key."""
-    flag = str(tablet_metadata.get("simulated", "")).strip().lower()
-    return flag in ("true", "1", "yes") or "simulator" in tablet_metadata
 
 
 def register_model_dirs(
