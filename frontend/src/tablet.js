@@ -198,6 +198,8 @@ async function showModel(modelId) {
     });
     if (signal.aborted) return;
     currentModel = model;
+    // Simulated data must never pass for a measurement of the catalogued tablet.
+    $('simulated-badge').hidden = !model.simulated;
     $('model-select').value = String(model.id);
     renderDownloads(model);
     const restore = restoring;
