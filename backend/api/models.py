@@ -34,6 +34,7 @@ CONTENT_TYPES = {
     ".gltf": "model/gltf+json",
     ".ply": "application/ply",
     ".png": "image/png",
+    ".pdf": "application/pdf",
     ".jpg": "image/jpeg",
     ".json": "application/json",
     ".npy": "application/octet-stream",
