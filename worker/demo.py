@@ -202,14 +202,21 @@ class LocalLibrary:
         finally:
             client.close()
 
-    def wait_tablet_model(self, tablet_id: int, *, timeout_s: float) -> dict | None:
-        """Poll until the worker's automatic registration has stored a whole-tablet model."""
+    def wait_tablet_model(self, tablet_id: int, *, timeout_s: float, scans: int = 0) -> dict | None:
+        """Poll until the worker's automatic registration has stored a whole-tablet model of
+        at least ``scans`` scans (a registration that started while faces were still being
+        reconstructed holds fewer; the worker queues another for the rest)."""
         deadline = time.monotonic() + timeout_s
         with self.client() as http:
             while time.monotonic() < deadline:
                 models = http.get("/models", params={"tablet_id": tablet_id})
-                if models.raise_for_status().json():
-                    return models.json()[-1]
+                done = [
+                    m
+                    for m in models.raise_for_status().json()
+                    if len((m.get("report") or {}).get("scans") or []) >= scans
+                ]
+                if done:
+                    return done[-1]
                 if self.workers and all(w.poll() is not None for w in self.workers):
                     raise RuntimeError(f"every worker exited; see {self.logs}")
                 time.sleep(0.5)
@@ -424,7 +431,7 @@ def run_demo(args: argparse.Namespace) -> int:
             print("demo: some reconstructions failed:\n  " + "\n  ".join(failed), file=sys.stderr)
             return 1
         progress.say("registering the six faces into one tablet on the worker (automatic)")
-        whole = library.wait_tablet_model(tablet["id"], timeout_s=args.timeout)
+        whole = library.wait_tablet_model(tablet["id"], timeout_s=args.timeout, scans=len(job_ids))
         if whole is None:
             print(
                 f"demo: the whole-tablet registration did not finish in {args.timeout:.0f} s; "
