@@ -4,15 +4,16 @@
 2. the real ORACC catalogue imported (``../shared/data/oracc-catalogue`` next to the repo, or
    ``HAMMURABI_DEMO_CATALOGUE``; without it a one-record catalogue, said clearly);
 3. ``hammurabi serve`` and ``hammurabi worker`` started as real processes;
-4. a complete tablet (all six faces) simulated (``worker.simulate``, quick preset) at the
-   paper's resolution, 26.8 µm per pixel (1280 × 1024 px over the paper's 34.3 × 27.4 mm
-   field; ``--width/--height`` choose a coarser one, e.g. for CI), each bundle marked
-   ``scan.tablet.simulated = "true"`` (free metadata, SCAN_BUNDLE.md), and each face
-   uploaded through the API by the rig agent's spool and upload client, like a rig;
-5. the reconstruction followed on the job rows (a progress line per face);
+4. the six faces of a tablet simulated (``worker.simulate``, quick preset) one after the
+   other at the paper's resolution, 26.8 µm per pixel (1280 × 1024 px over the paper's
+   34.3 × 27.4 mm field; ``--width/--height`` choose a coarser one, e.g. for CI), each bundle
+   marked ``scan.tablet.simulated = "true"`` (free metadata, SCAN_BUNDLE.md) and uploaded as
+   soon as it is simulated through the API by the rig agent's spool and upload client, like
+   a rig, so that the worker reconstructs it while the next face is simulated;
+5. the reconstruction followed on the job rows (a progress line per face), then the
+   worker's automatic registration of all six faces (whole tablet, fatcross plates);
 6. the library's address, the whole tablet's link and a staff login printed; serving until
-   Ctrl-C
-   (``--exit-when-ready``: stop once the models are ready, for tests).
+   Ctrl-C (``--exit-when-ready``: stop once the models are ready, for tests).
 
 ``LocalLibrary`` (start/stop the service and workers, the CLI, an API token) is reused by
 the system tests and ``bench/queue.py``.
@@ -40,7 +41,9 @@ import httpx
 
 REPO = Path(__file__).resolve().parent.parent
 CATALOGUE_FILE = "oracc_catalogue_merged.csv"
-DEMO_FACES = ("obverse", "reverse", "top", "bottom", "left", "right")
+# Upload order: every prefix of it overlaps (the edges join obverse and reverse), so each
+# registration the worker starts while faces are still arriving can place what it has.
+DEMO_FACES = ("obverse", "top", "bottom", "left", "right", "reverse")
 FALLBACK_CATALOGUE = (
     "key,designation,museum_no,period,provenience,genre,language\n"
     "P000001,Demo tablet,Demo 1,Old Babylonian,Sippar,legal,Akkadian\n"
@@ -245,18 +248,17 @@ class LocalLibrary:
                 time.sleep(0.3)
 
 
-def simulate_tablet_zips(out_dir: Path, *, seed: int, size: tuple[int, int]) -> dict[str, Path]:
-    """Simulate all six faces (quick preset) and zip each bundle, marked simulated in its
-    ``scan.tablet`` free metadata: {face: bundle.zip}."""
+def simulate_face_zip(out_dir: Path, face: str, *, seed: int, size: tuple[int, int]) -> Path:
+    """Simulate one face (quick preset) and zip its bundle, marked simulated; the simulator's
+    files are removed once zipped (at the paper's resolution a face is ~0.5 GB)."""
     from worker.simulate import simulate_scan
 
-    result = simulate_scan(out_dir / "sim", seed=seed, face="all", preset="quick", size=size)
-    zips = {}
-    for face, bundle in result.bundles.items():
-        plain = Path(shutil.make_archive(str(out_dir / f"{face}-plain"), "zip", bundle))
-        zips[face] = rewrite_manifest(plain, out_dir / f"{face}-bundle.zip", mark_simulated)
-        plain.unlink()
-    return zips
+    result = simulate_scan(out_dir / face, seed=seed, face=face, preset="quick", size=size)
+    plain = Path(shutil.make_archive(str(out_dir / f"{face}-plain"), "zip", result.bundles[face]))
+    zipped = rewrite_manifest(plain, out_dir / f"{face}-bundle.zip", mark_simulated)
+    plain.unlink()
+    shutil.rmtree(out_dir / face, ignore_errors=True)
+    return zipped
 
 
 def mark_simulated(manifest: dict) -> None:
@@ -366,7 +368,7 @@ def run_demo(args: argparse.Namespace) -> int:
     from worker.simulate.acquisition import pixel_size_for
 
     pixel_um = pixel_size_for(args.width, args.height)
-    progress = Progress(total_steps=7)
+    progress = Progress(total_steps=6)
     data_dir = Path(args.data_dir).resolve()
     if data_dir.exists():
         shutil.rmtree(data_dir)
@@ -406,19 +408,27 @@ def run_demo(args: argparse.Namespace) -> int:
             tablet = items.raise_for_status().json()["items"][0]
         paper = " (the paper's)" if abs(pixel_um - 26.8) < 0.05 else ""
         progress.say(
-            f"simulating all six faces of a tablet (a SIMULATED scan, labelled so) for "
+            f"simulating the six faces of a tablet (a SIMULATED scan, labelled so) for "
             f"{tablet['designation']}: quick preset, {args.width}×{args.height} px, "
-            f"{pixel_um:.1f} µm per pixel{paper}"
+            f"{pixel_um:.1f} µm per pixel{paper}; each face is uploaded through the API "
+            "with the rig agent's upload client as soon as it is simulated, and the worker "
+            "reconstructs it while the next one is simulated"
         )
         work = Path(tempfile.mkdtemp(prefix="demo-sim-", dir=data_dir))
-        zips = simulate_tablet_zips(work, seed=args.seed, size=(args.width, args.height))
-
-        progress.say("uploading each face through the API with the rig agent's upload client")
         faces, job_ids = [], []
         for face in DEMO_FACES:
-            result = library.upload_bundle_zip(zips[face], tablet_id=tablet["id"])
+            t0 = time.monotonic()
+            bundle = simulate_face_zip(work, face, seed=args.seed, size=(args.width, args.height))
+            t1 = time.monotonic()
+            result = library.upload_bundle_zip(bundle, tablet_id=tablet["id"])
+            bundle.unlink()
             faces.append(face)
             job_ids.append(result["job"]["id"])
+            print(
+                f"      {face}: simulated in {t1 - t0:.0f} s, uploaded in "
+                f"{time.monotonic() - t1:.0f} s (job {result['job']['id']})",
+                flush=True,
+            )
         shutil.rmtree(work, ignore_errors=True)
 
         progress.say(f"reconstructing {len(job_ids)} scans on the worker")
