@@ -1,4 +1,4 @@
-"""`python -m worker.reconstruct BUNDLE OUTDIR [--fusion default|paper] [--surface ...]`.
+"""`python -m worker.reconstruct BUNDLE OUTDIR [--fusion default|paper|plain] [--surface ...]`.
 
 Writes the model directory of SCAN_BUNDLE.md (plus quality/*.npy) with a progress bar on
 stderr. Exit codes: 0 done, 2 the bundle cannot be reconstructed (message on stderr, OUTDIR

@@ -48,6 +48,7 @@ ui = bindViewerUi(viewer, {
   getHeightUrl: () => (currentModel?.assets?.['height.npy'] ? api.assetHref(currentModel.assets['height.npy']) : null),
   getPixelSizeUm: () => Number(currentModel?.report?.pixel_size_um) || null,
   baseName: () => (tablet?.designation ?? `tablet-${tabletId}`).replace(/[^\w.-]+/g, '_'),
+  face: () => currentModel?.report?.scan?.face ?? null,
 });
 // For the console and for tests: the page's viewer.
 window.hammurabi = { viewer, ui };
@@ -224,10 +225,13 @@ async function showModel(modelId) {
 }
 
 async function refreshScans({ pickModel }) {
+  // The catalogue's numeric id: the page may have been opened by P-number (?id=P451806),
+  // which the tablet route resolves but the model list (?tablet_id=) does not.
+  const id = tablet?.id ?? tabletId;
   const [scans, wholeTablet] = await Promise.all([
-    api.tabletScans(tabletId),
+    api.tabletScans(id),
     // The whole tablet is an extra; the page works without it.
-    api.tabletModels(tabletId).catch(() => []),
+    api.tabletModels(id).catch(() => []),
   ]);
   tabletModels = Array.isArray(wholeTablet) ? wholeTablet : [];
   const list = Array.isArray(scans) ? scans : (scans.items ?? []);
@@ -237,8 +241,8 @@ async function refreshScans({ pickModel }) {
   $('empty').hidden = all.length > 0 || busy;
   if (pickModel && all.length) {
     const wanted = restoring?.state.model;
-    // By default the latest face model; the whole tablet when there is nothing else.
-    const pool = faceModels.length ? faceModels : all;
+    // By default the whole tablet (the object as a reader holds it), else the latest face model.
+    const pool = tabletModels.length ? tabletModels : all;
     const latest = pool.reduce((a, b) => ((b.version ?? b.id) > (a.version ?? a.id) ? b : a));
     const target = all.find((m) => m.id === wanted) ?? latest;
     const missingLinked = wanted != null && target.id !== wanted;

@@ -81,37 +81,88 @@ def test_default_fusion_beats_every_baseline(tmp_path, noise, min_coverage):
             assert best["normal_median_deg"] < other["normal_median_deg"], (seed, name, figs)
 
 
-@pytest.mark.parametrize(("noise", "low", "high"), [("clean", 0.0, 0.05), ("default", 0.35, 0.55)])
-def test_camera_blur_is_measured_on_the_reference_fringes(tmp_path, noise, low, high):
-    # The simulator blurs with a sampled Gaussian kernel of nominal σ 0.5 px (`default`; its
-    # MTF at the finest 8 px period equals a continuous Gaussian's of σ ≈ 0.46) and not at
-    # all (`clean`); the fit over five periods of noisy frames is good to a few hundredths.
-    from worker.pipeline import camera_blur_px
-
-    out = tmp_path / noise
-    simulate_scan(out, seed=3, preset="quick", noise=noise, size=SIZE)
-    with open_bundle(out / "bundle") as bundle:
-        assert low <= camera_blur_px(bundle) <= high
+def _set_psf(bundle_dir, sigma_px):
+    path = bundle_dir / "manifest.json"
+    manifest = json.loads(path.read_text())
+    manifest["camera"]["psf_sigma_px"] = sigma_px
+    path.write_text(json.dumps(manifest))
 
 
-def test_camera_blur_reuses_the_fringe_stage_modulation(tmp_path):
-    # The fringe stage keeps the reference target's central-half modulation of its first
-    # azimuth; the blur measured from it must be the one measured by decoding the frames
-    # again (same pixels, same arithmetic), without decoding anything.
-    from worker.pipeline import camera_blur_px
+def test_falling_modulation_without_a_psf_field_gets_no_sharpening(tmp_path):
+    # A projector whose MTF takes the finest periods' modulation down to a few per cent
+    # (the former fit read several pixels of camera blur from it) and no camera.psf_sigma_px:
+    # nobody measured the camera, so no blur is assumed and nothing is sharpened.
+    from perturbed_bundles import projector_mtf
 
-    simulate_scan(tmp_path, seed=3, preset="quick", noise="default", size=SIZE)
-    with open_bundle(tmp_path / "bundle") as bundle:
-        meas = measure_bundle(bundle, progress=lambda stage, fraction: None)
-        decoded = camera_blur_px(bundle)
+    from worker import pipeline
 
-        def no_decoding(*args, **kwargs):
-            raise AssertionError("camera_blur_px decoded frames the fringe stage had measured")
+    simulate_scan(tmp_path / "sim", seed=3, preset="quick", noise="default", size=SIZE)
+    bundle = tmp_path / "sim" / "bundle"
+    projector_mtf(bundle, sigma_um=0.45 * 214.4)
+    with open_bundle(bundle) as b:
+        assert b.manifest.camera.psf_sigma_px is None
+        assert pipeline.camera_blur_px(b) == 0.0
+    report = pipeline.reconstruct_bundle(bundle, tmp_path / "m")
+    mods = report["quality"]["reference_modulation_by_period"]
+    finest, coarse = min(mods, key=float), max(mods, key=float)
+    assert mods[finest] < 0.5 * mods[coarse]  # the modulation does fall with the period
+    assert report["quality"]["camera_blur_sigma_px"] == 0.0
+    assert "absent" in report["quality"]["camera_blur_source"]
+    assert report["refinements"]["sharpen"] == {"sigma_px": 0.0, "pixels": 0}
 
-        bundle.radiance_many = no_decoding
-        reused = camera_blur_px(bundle, reference_modulation=meas.reference_modulation)
-    assert decoded > 0
-    assert reused == decoded
+
+def test_the_manifest_psf_is_used_and_reported(tmp_path):
+    from worker import pipeline
+
+    simulate_scan(tmp_path / "sim", seed=3, preset="quick", noise="default", size=SIZE)
+    bundle = tmp_path / "sim" / "bundle"
+    _set_psf(bundle, 0.5)
+    report = pipeline.reconstruct_bundle(bundle, tmp_path / "m")
+    assert report["quality"]["camera_blur_sigma_px"] == 0.5
+    assert report["quality"]["camera_blur_source"] == "manifest camera.psf_sigma_px"
+    assert report["refinements"]["sharpen"]["sigma_px"] == 0.5
+    assert report["refinements"]["sharpen"]["pixels"] > 0
+    # Every refinement says where it acted; the guard's map is written.
+    for step in ("normal_bias", "walls", "guard"):
+        assert step in report["refinements"], step
+    guard = np.load(tmp_path / "m" / "quality" / "guard.npy")
+    entry = report["refinements"]["guard"]
+    assert int((guard == 1).sum()) == entry["pixels_beyond_fringe_bound"]
+    assert int((guard == 2).sum()) == entry["pixels_outside_neighbourhood"]
+
+
+def test_no_output_height_breaks_the_guard_rule(tmp_path):
+    # End to end on a scan with chips: where a fringe height is valid the output is within
+    # max(5σ, 50 µm) of it; elsewhere within its neighbourhood's bound (`guard_heights`).
+    from worker import pipeline
+    from worker.recon.height import valid_fringe
+    from worker.recon.quality import crease_sigma_um
+
+    simulate_scan(tmp_path / "sim", seed=1, preset="quick", noise="default", size=SIZE)
+    with open_bundle(tmp_path / "sim" / "bundle") as b:
+        meas = measure_bundle(b, progress=lambda stage, fraction: None)
+    report = pipeline.reconstruct_bundle(tmp_path / "sim" / "bundle", tmp_path / "m")
+    h = np.load(tmp_path / "m" / "height.npy")
+    mask = np.isfinite(h)
+    valid = (
+        valid_fringe(
+            meas.fringe_height_um,
+            _mask(meas),
+            azimuths_used=meas.azimuths_used,
+            pixel_size_um=meas.pixel_size_um,
+        )
+        & mask
+    )
+    # σ of a fringe height as a point sample: phase noise and the crease term of the
+    # fringes' measured blur (`pipeline._guard`).
+    blur = report["refinements"]["fringe_blur"]["sigma_px"]
+    crease = crease_sigma_um(meas.normals, pixel_size_um=meas.pixel_size_um, blur_px=blur)
+    sigma = np.hypot(np.nan_to_num(meas.fringe_sigma_um, nan=0.0), crease)
+    tol = np.maximum(5 * sigma, 50.0)
+    assert valid.sum() > 0.8 * mask.sum()
+    assert np.all(np.abs(h - meas.fringe_height_um)[valid] <= tol[valid] + 1e-3)
+    f = meas.fringe_height_um[valid]
+    assert np.all((h[mask] > f.min() - 3000) & (h[mask] < f.max() + 3000))
 
 
 def test_fringe_surface_median_is_scipy_s():
@@ -145,15 +196,16 @@ def test_outputs_of_the_mask_follow_a_surface_that_shrank_it(tmp_path, monkeypat
     holes = []
 
     def refine_with_holes(meas, height, mask, *, blur_sigma_px):
-        h = real_refine(meas, height, mask, blur_sigma_px=blur_sigma_px).copy()
+        h, entry = real_refine(meas, height, mask, blur_sigma_px=blur_sigma_px)
+        h = h.copy()
         rows, cols = np.nonzero(mask)
         holes.extend(zip(rows[::500], cols[::500], strict=True))
         for r, c in holes:
             h[r, c] = np.nan
-        return h
+        return h, entry
 
-    real_refine = pipeline.refine_walls
-    monkeypatch.setattr(pipeline, "refine_walls", refine_with_holes)
+    real_refine = pipeline.refine_walls_checked
+    monkeypatch.setattr(pipeline, "refine_walls_checked", refine_with_holes)
     out = tmp_path / "m"
     report = pipeline.reconstruct_bundle(tmp_path / "sim" / "bundle", out)
     assert len(holes) >= 10

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from worker.measure.checks import check_reference_periods, measured_period_px
 from worker.measure.frames import angle_key, prefetch
 from worker.recon.arrays import copy_where, fast_median
 from worker.recon.fringe import four_step_phase, intensity_noise, phase_sigma_rad
@@ -80,6 +81,7 @@ def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_
     amps: dict = defaultdict(list)  # per level (object B, reference B), for cliff_samples
     total = len(groups)
     blur_key = next(iter(sets))
+    periods_seen: list = []  # (azimuth, nominal, measured period px) of blur_key's references
     cliff_jobs = []
     # One decoding thread more than cores: a thread blocked on a read or the GIL leaves no
     # core idle (fringe stage 5.4–5.9 → 4.8–5.3 s at 1.3 Mpx on 2 cores, three groups ahead).
@@ -103,6 +105,9 @@ def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_
         obj_phase = four_step_phase(stack[:4], modulation=last, out=_reusable(obj_phase))
         ref_phase = four_step_phase(stack[4:], modulation=key == blur_key, out=_reusable(ref_phase))
         amps[key].append((obj_phase.amplitude, ref_phase.amplitude))
+        period_px = sets[key][level][0] / meas.pixel_size_um
+        if key == blur_key and 3 <= period_px <= min(meas.shape) / 2:
+            periods_seen.append((key[0], period_px, measured_period_px(ref_phase.phase_rad)))
         if level == 0:
             shape = (len(sets[key]), *obj_phase.phase_rad.shape)
             wrapped[key] = np.empty(shape, np.float32)
@@ -169,10 +174,11 @@ def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_
             copy_where(m, nan_frame, ~np.isfinite(m))
             mods.append(m)
         if key == blur_key:
-            # The camera's blur is measured on these (`pipeline.camera_blur_px`).
+            # Reported (the projector's and camera's modulation transfer), not used.
             period = sets[key][level][0]
             meas.reference_modulation[(*key, period)] = _central_median(ref_phase.modulation)
         progress("fringe", 0.02 + 0.5 * (i + 1) / total)
+    check_reference_periods(periods_seen)
     maxima = side.submit(_maxima, mods, ambient if meas.albedo is None else None)
     comb = consensus_azimuths(np.stack(heights), np.stack(sigmas), workers=workers)
     meas.fringe_height_um = comb.height_um

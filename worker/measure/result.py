@@ -34,7 +34,8 @@ class Measurements:
     azimuths_used: np.ndarray | None = None
     modulation: np.ndarray | None = None
     # Median B/A over the central half of the reference target, per (azimuth°, polar°, period
-    # µm) of the first fringe azimuth: what `pipeline.camera_blur_px` measures the blur on.
+    # µm) of the first fringe azimuth: the projector's and camera's modulation transfer,
+    # reported in report.json (not a camera blur: SCAN_BUNDLE.md).
     reference_modulation: dict = field(default_factory=dict)
     rough_height_um: np.ndarray | None = None  # smooth, filled: where the light came from
     cliff_samples: list = field(default_factory=list)  # per azimuth, recon.walls.CliffSamples

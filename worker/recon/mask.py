@@ -5,7 +5,11 @@ Behind the tablet lies a dark, low-albedo support (black velvet, a V-block); cla
 
 1. brightness: albedo (photometric or colour) or, for fringe-only bundles, the fringe
    amplitude; split by Otsu's threshold on log brightness (the two populations, support and
-   clay, differ by a factor, not an offset), never below `min_albedo`;
+   clay, differ by a factor, not an offset), never below `min_albedo`; when the heights
+   show a support apart from the tablet (two height classes far apart, the lower one on
+   the image border: a light V-block or cloth as bright as the clay) and the brightness
+   class overlaps the class above it by less than half (IoU), the class above it is the
+   tablet instead;
 2. reliability: pixels with neither a normal nor a fringe height are dropped; pixels whose
    fringe modulation is far below the tablet's typical value are dropped where they also
    have no normal;
@@ -93,6 +97,14 @@ def tablet_mask(
     # are tablet all the same: the fusion bridges them; only unmeasured margins are dropped.
     measured = _fill_holes(_erode(_dilate(measured, 2), 2))
     fg &= measured
+    if height_um is not None:
+        raised = _raised_above_support(height_um, finite & measured)
+        if raised is not None and (raised & fg).sum() < 0.5 * (raised | fg).sum():
+            # A support as bright as the clay (a light V-block or cloth) that stands apart
+            # in height, where brightness picked mostly the support: the tablet is what
+            # stands above it. Where the two agree (IoU ≥ ½) brightness keeps its finer
+            # rim (the tablet's sloping sides fall below the heights' threshold).
+            fg = raised & finite & (b > 0.5 * min_albedo)
     if modulation is not None and fg.any():
         m = np.asarray(modulation, np.float32)
         tablet_m = m[fg & ~np.isnan(m)]  # np.nanmedian's values, without a whole-frame copy
@@ -121,6 +133,47 @@ def tablet_mask(
     fg = keep[labels]
     fg = _fill_holes(fg)
     return _erode(fg, 1)
+
+
+def _raised_above_support(height_um, where, *, border_share: float = 0.5):
+    """The pixels standing above a support that surrounds them, or None when the heights
+    do not show one.
+
+    Otsu's threshold on the heights of `where` splits them in two; the split is a support
+    when the lower class holds at least `border_share` of the measured border pixels (a
+    support surrounds the tablet; a chip's lower terrace lies inside it) and the higher
+    class does not, and the two classes stand apart: the gap between their medians exceeds
+    6 times the sum of their robust spreads (1.4826·MAD), which a tablet's own relief and
+    curvature, continuous, do not.
+    """
+    h = np.asarray(height_um, np.float32)
+    ok = where & np.isfinite(h)
+    if ok.sum() < 64:
+        return None
+    v = h[ok]
+    try:
+        t = otsu_threshold(v)
+    except ValueError:
+        return None
+    lo, hi = v[v <= t], v[v > t]
+    if lo.size < 16 or hi.size < 16:
+        return None
+
+    def spread(x):
+        return 1.4826 * float(np.median(np.abs(x - np.median(x))))
+
+    if np.median(hi) - np.median(lo) <= 6 * (spread(lo) + spread(hi)):
+        return None
+    # A band 4 px wide: the measured region may stop a pixel or two short of the edge.
+    border = np.ones(h.shape, bool)
+    border[4:-4, 4:-4] = False
+    edge = border & ok
+    if edge.sum() < 16:
+        return None
+    low_share = float(np.mean(h[edge] <= t))
+    if low_share < border_share:
+        return None
+    return ok & (h > t)
 
 
 # Binary morphology with a 3×3 square as scipy.ndimage's (outside the image counts as

@@ -13,11 +13,18 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from worker.recon.arrays import fast_median
 
-__all__ = ["NORMAL_FLOOR_RAD", "fringe_sigma_um", "normal_sigma_rad"]
+__all__ = [
+    "NORMAL_FLOOR_RAD",
+    "crease_sigma_um",
+    "fringe_blur_px",
+    "fringe_sigma_um",
+    "normal_sigma_rad",
+]
 
 # What a photometric normal's residual cannot show (light calibration, non-Lambertian bias):
 # the floor of its predicted angular noise.
@@ -93,7 +100,9 @@ def fringe_sigma_um(
     return out, sigma
 
 
-def crease_sigma_um(normals: np.ndarray, *, pixel_size_um: float) -> np.ndarray:
+def crease_sigma_um(
+    normals: np.ndarray, *, pixel_size_um: float, blur_px: float = 0.0
+) -> np.ndarray:
     """(H, W) float32 model error of a fringe height where the surface bends within a pixel.
 
     A fringe pixel reports (about) the height averaged over its area, not the height at its
@@ -102,6 +111,11 @@ def crease_sigma_um(normals: np.ndarray, *, pixel_size_um: float) -> np.ndarray:
     differences (a crease shows as Δg/(2s) there), s²·|∇²h|/8 bounds that error; it is added in
     quadrature to the fringe noise so that wedge rims and bottoms take their shape from the
     normals. NaN normals count as flat.
+
+    blur_px: σ (px) by which the fringe heights are smoothed relative to the normals
+    (`fringe_blur_px`: light inside the clay, a defocused projector); a Gaussian of σ moves
+    a height by (σ²/2)·∇²h (the heat equation's first step), added to the bound:
+    s²·|∇²h|·(1/8 + σ²/2).
     """
     if not pixel_size_um > 0:
         raise ValueError(f"pixel_size_um must be > 0, got {pixel_size_um}")
@@ -113,43 +127,89 @@ def crease_sigma_um(normals: np.ndarray, *, pixel_size_um: float) -> np.ndarray:
         gy = np.nan_to_num(n[..., 1] / n[..., 2], nan=0.0, posinf=0.0, neginf=0.0)
     s = float(pixel_size_um)
     laplacian = (np.gradient(gx, axis=1) + np.gradient(gy, axis=0)) / s
-    return (s * s * np.abs(laplacian) / 8.0).astype(np.float32, copy=False)
+    gain = 1.0 / 8.0 + 0.5 * float(blur_px) ** 2
+    return (s * s * np.abs(laplacian) * gain).astype(np.float32, copy=False)
 
 
-def camera_blur_sigma_px(
-    periods_px: np.ndarray,
-    modulation: np.ndarray,
+FRINGE_BLUR_CANDIDATES_PX = (0.0, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0)
+
+
+def fringe_blur_px(
+    fringe_height_um: np.ndarray,
+    normals: np.ndarray,
+    mask: np.ndarray,
     *,
-    azimuth_deg: float,
+    pixel_size_um: float,
+    candidates_px: tuple[float, ...] = FRINGE_BLUR_CANDIDATES_PX,
+    crease_share: float = 0.1,
 ) -> float:
-    """Standard deviation (pixels) of the camera's point-spread function, from the contrast
-    that the reference target's fringes keep at each period (0 when nothing is measurable).
+    """σ (px) of the Gaussian by which the fringe heights are smoother than the normals.
 
-    On the flat reference a fringe set is a pure sinusoid of period P; SCAN_BUNDLE.md gives it
-    one modulation m for every period, so what the finer periods lose is the camera's
-    modulation transfer: the pixel's area (a box of one pixel, projected on the fringe
-    direction u = (sin φ, cos φ): sinc(|sin φ|/P)·sinc(|cos φ|/P), sinc(x) = sin πx/πx) times
-    the optics' PSF, for a Gaussian of σ px exp(−2π²σ²/P²) (the slanted-sinusoid form of the
-    MTF measurement of ISO 12233). Hence ln(m_P / box_P) = ln m − 2π²σ²·P⁻², a line in P⁻²
-    fitted over the periods given; σ² = −slope/2π², clipped at 0.
+    Light scattered inside the clay and a defocused projector blur the fringe pattern on the
+    object, hence its phase, hence the heights, while the photometric normals keep the
+    surface's fine detail (the camera's blur acts on both alike and cancels here). So the
+    fringe heights' slopes (central differences, ∇f) are compared with the normals' slopes
+    g smoothed by the same central difference ([¼ ½ ¼]) and by a Gaussian of each candidate
+    σ: the σ whose smoothed slopes fit ∇f best (median |∇f − G_σ*g| over the creases, the
+    `crease_share` of the pixels where g bends most, where a blur shows and the normals'
+    noise counts least; a median, so that cliffs and unwrapping errors do not vote) is the
+    fringes' blur relative to the normals. It feeds `crease_sigma_um`, so that where the
+    fringes are blurred the fusion takes the wedges' shape from the normals (issue 15).
+    Returns 0 when nothing can be compared.
 
-    periods_px: (K,) fringe periods in pixels (P_um / pixel_size_um), K ≥ 2 distinct.
-    modulation: (K,) typical measured modulation B/A of each period on the reference target
-    (e.g. the median over the frame). Periods under 3 px or with modulation ≤ 0.02 are left
-    out (too few samples per period / nothing to measure).
+    fringe_height_um: (H, W) µm, NaN where none; normals: (H, W, 3); mask: (H, W) bool.
     """
-    p = np.asarray(periods_px, np.float64).ravel()
-    m = np.asarray(modulation, np.float64).ravel()
-    if p.shape != m.shape:
-        raise ValueError(f"periods_px {p.shape} and modulation {m.shape} must match")
-    phi = np.radians(azimuth_deg)
-    box = np.sinc(abs(np.sin(phi)) / np.maximum(p, 1e-9)) * np.sinc(
-        abs(np.cos(phi)) / np.maximum(p, 1e-9)
-    )
-    ok = np.isfinite(p) & np.isfinite(m) & (p >= 3) & (m > 0.02)
-    x = 1.0 / np.square(p[ok])
-    if x.size < 2 or np.ptp(x) < 1e-4:
+    if not pixel_size_um > 0:
+        raise ValueError(f"pixel_size_um must be > 0, got {pixel_size_um}")
+    f = np.asarray(fringe_height_um, np.float32)
+    n = np.asarray(normals, np.float32)
+    m = np.asarray(mask, bool)
+    if not m.any():
         return 0.0
-    y = np.log(m[ok] / box[ok])
-    slope = np.polyfit(x, y, 1)[0]
-    return float(np.sqrt(max(0.0, -slope / (2 * np.pi**2))))
+    rows = np.flatnonzero(m.any(axis=1))
+    cols = np.flatnonzero(m.any(axis=0))
+    pad = int(np.ceil(3 * max(candidates_px))) + 2
+    r0, r1 = max(rows[0] - pad, 0), min(rows[-1] + pad + 1, m.shape[0])
+    c0, c1 = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, m.shape[1])
+    f, n, m = f[r0:r1, c0:c1], n[r0:r1, c0:c1], m[r0:r1, c0:c1]
+    s = float(pixel_size_um)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gx = n[..., 0] / n[..., 2]
+        gy = n[..., 1] / n[..., 2]
+    steep = float(np.tan(np.radians(60.0)))
+    ok_g = m & np.isfinite(gx) & np.isfinite(gy) & (np.abs(gx) < steep) & (np.abs(gy) < steep)
+    gx, gy = np.where(ok_g, gx, 0).astype(np.float32), np.where(ok_g, gy, 0).astype(np.float32)
+    w = ok_g.astype(np.float32)
+    fx = np.full(f.shape, np.nan, np.float32)
+    fy = np.full(f.shape, np.nan, np.float32)
+    fx[:, 1:-1] = (f[:, 2:] - f[:, :-2]) / np.float32(2 * s)
+    fy[1:-1, :] = (f[2:, :] - f[:-2, :]) / np.float32(2 * s)
+    tri = np.array([[0.25, 0.5, 0.25]], np.float32)
+    # The central difference of h is the mean slope over two pixels: [¼ ½ ¼] along its axis.
+    sx = cv2.filter2D(gx * w, -1, tri, borderType=cv2.BORDER_CONSTANT)
+    sy = cv2.filter2D(gy * w, -1, tri.T, borderType=cv2.BORDER_CONSTANT)
+    wx = cv2.filter2D(w, -1, tri, borderType=cv2.BORDER_CONSTANT)
+    wy = cv2.filter2D(w, -1, tri.T, borderType=cv2.BORDER_CONSTANT)
+    full = cv2.erode(ok_g.astype(np.uint8), np.ones((2 * pad - 1, 2 * pad - 1), np.uint8)) > 0
+    use = full & np.isfinite(fx) & np.isfinite(fy)
+    bend = np.abs(np.gradient(gx, axis=1)) + np.abs(np.gradient(gy, axis=0))
+    if use.sum() < 100:
+        return 0.0
+    cut = np.quantile(bend[use], 1.0 - crease_share)
+    use &= bend >= cut
+    if use.sum() < 50:
+        return 0.0
+    scores = []
+    for sigma in candidates_px:
+        if sigma > 0:
+            k = 2 * int(np.ceil(3 * sigma)) + 1
+            bx = cv2.GaussianBlur(sx, (k, k), sigma, borderType=cv2.BORDER_CONSTANT)
+            by = cv2.GaussianBlur(sy, (k, k), sigma, borderType=cv2.BORDER_CONSTANT)
+            nx = cv2.GaussianBlur(wx, (k, k), sigma, borderType=cv2.BORDER_CONSTANT)
+            ny = cv2.GaussianBlur(wy, (k, k), sigma, borderType=cv2.BORDER_CONSTANT)
+        else:
+            bx, by, nx, ny = sx, sy, wx, wy
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r = np.abs(fx[use] - bx[use] / nx[use]) + np.abs(fy[use] - by[use] / ny[use])
+        scores.append(float(np.median(r)))
+    return float(candidates_px[int(np.argmin(scores))])

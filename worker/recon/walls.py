@@ -28,10 +28,13 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
 __all__ = [
     "CliffRefinement",
     "CliffSamples",
+    "RegionCheck",
+    "check_refinement",
     "cliff_band",
     "cliff_samples",
     "deblur_fractions",
@@ -371,8 +374,14 @@ def refine_cliff_heights(
     blur_sigma_px: float,
     min_jump_um: float | None = None,
     radius: int = 5,
+    sample: str = "point",
 ) -> CliffRefinement:
-    """Heights at cliffs replaced by the area mean f·h_hi + (1 − f)·h_lo.
+    """Heights at cliffs replaced by the side the pixel's centre lies on, or the area mean.
+
+    sample: "point" (SCAN_BUNDLE.md: a pixel's height is the surface's at its centre; a
+    straight wall through the pixel leaves the centre on the side holding more than half of
+    its area, so the height is h_hi where f ≥ ½, else h_lo) or "area" (the area mean
+    f·h_hi + (1 − f)·h_lo, what the pixel integrates).
 
     height_um: the surface so far (fused); fringe_height_um: the combined fringe heights
     (NaN where none), which locate cliffs and give the sides' heights (the fusion may
@@ -393,6 +402,8 @@ def refine_cliff_heights(
 
     Returns :class:`CliffRefinement`.
     """
+    if sample not in ("point", "area"):
+        raise ValueError(f"sample must be 'point' or 'area', got {sample!r}")
     h = np.asarray(height_um, np.float32)
     m = np.asarray(mask, bool)
     s = float(pixel_size_um)
@@ -473,11 +484,71 @@ def refine_cliff_heights(
     r_ok, c_ok = rows[ok], cols[ok]
     known = _pure_sides(base, r_ok, c_ok, mid[ok], h.shape)
     f = deblur_fractions(g[ok], r_ok, c_ok, known, blur_sigma_px=blur_sigma_px)
-    out[r_ok, c_ok] = (f * h_hi[ok] + (1.0 - f) * h_lo[ok]).astype(np.float32)
+    if sample == "point":
+        out[r_ok, c_ok] = np.where(f >= 0.5, h_hi[ok], h_lo[ok]).astype(np.float32)
+    else:
+        out[r_ok, c_ok] = (f * h_hi[ok] + (1.0 - f) * h_lo[ok]).astype(np.float32)
     frac[r_ok, c_ok] = f
     upper[r_ok, c_ok] = h_hi[ok]
     lower[r_ok, c_ok] = h_lo[ok]
     return CliffRefinement(out, frac, upper, lower)
+
+
+class RegionCheck(NamedTuple):
+    """Output of :func:`check_refinement`: the heights kept, and what acted where."""
+
+    height_um: np.ndarray  # (H, W) float32
+    acted: np.ndarray  # (H, W) bool, pixels whose refined height was kept
+    regions: int  # connected regions of changed pixels
+    stood_down: int  # regions given their input heights back
+    stood_down_pixels: int
+
+
+def check_refinement(
+    before_um: np.ndarray,
+    after_um: np.ndarray,
+    fringe_height_um: np.ndarray,
+    mask: np.ndarray,
+    *,
+    radius: int = 5,
+) -> RegionCheck:
+    """Keep a cliff refinement region by region only where the measurements support it.
+
+    A refinement moves a pixel onto one side of a wall; both sides' heights are measured by
+    the fringes around it. So each changed pixel must lie within the range [min, max] of
+    the fringe heights of the unchanged mask pixels in its (2·radius + 1)² window. A pixel
+    outside it (a side extrapolated through a grazing normal, a chip floor read as a
+    terrace) contradicts the two-sides model there; the region it spoils — it and the
+    changed pixels among its 8-neighbours, which share its side estimates (their windows
+    overlap by all but one row) — stands down and gets its input heights back. A whole
+    cliff band is not one region: on a long wall most pixels are right where a few fail.
+
+    before_um, after_um, fringe_height_um: (H, W) µm (fringe NaN where none); mask bool.
+    """
+    b = np.asarray(before_um, np.float32)
+    a = np.asarray(after_um, np.float32)
+    m = np.asarray(mask, bool)
+    with np.errstate(invalid="ignore"):
+        changed = m & np.isfinite(a) & ~(a == b)
+    eight = np.ones((3, 3), bool)
+    if not changed.any():
+        return RegionCheck(a.copy(), changed, 0, 0, 0)
+    fr = np.asarray(fringe_height_um, np.float32)
+    known = m & ~changed & np.isfinite(fr)
+    size = 2 * radius + 1
+    hi = ndimage.maximum_filter(
+        np.where(known, fr, -np.inf), size=size, mode="constant", cval=-np.inf
+    )
+    lo = ndimage.minimum_filter(
+        np.where(known, fr, np.inf), size=size, mode="constant", cval=np.inf
+    )
+    with np.errstate(invalid="ignore"):
+        bad = changed & ~((a >= lo) & (a <= hi))
+    revert = ndimage.binary_dilation(bad, structure=eight) & changed
+    _, n = ndimage.label(changed, structure=eight)
+    _, n_bad = ndimage.label(revert, structure=eight)
+    out = np.where(revert, b, a).astype(np.float32)
+    return RegionCheck(out, changed & ~revert, int(n), int(n_bad), int(revert.sum()))
 
 
 def _dilate(a, r):

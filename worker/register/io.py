@@ -13,7 +13,25 @@ from PIL.PngImagePlugin import PngInfo
 from worker.durable import replace_dir_atomic, write_new_file
 from worker.register.pointcloud import ScanCloud, scan_cloud
 
-__all__ = ["RegisterInputError", "load_model_dir", "png_bytes", "write_output_dir"]
+__all__ = [
+    "SHADING_MAPS",
+    "RegisterInputError",
+    "face_asset_dir",
+    "load_model_dir",
+    "png_bytes",
+    "write_output_dir",
+]
+
+# A face model's image-grid shading maps (worker/assets.py) that the whole tablet serves per face.
+SHADING_MAPS = ("curvature.png", "curvature_coarse.png", "accessibility.png")
+
+
+def face_asset_dir(label: str) -> str:
+    """Folder of a face's maps among the whole-tablet model's assets: ``faces/<label>`` with
+    every character but letters, digits, '-', '_' and '.' replaced by '_' (the viewer's
+    `faceAssetPrefix` applies the same rule to the GLB's node names)."""
+    safe = "".join(ch if ch.isascii() and (ch.isalnum() or ch in "-_.") else "_" for ch in label)
+    return f"faces/{safe.strip('.') or '_'}"
 
 
 class RegisterInputError(ValueError):
@@ -67,6 +85,10 @@ def load_model_dir(path: str | os.PathLike) -> tuple[ScanCloud, dict]:
         "albedo": albedo,
         "pixel_size_um": float(pixel),
         "tablet": scan.get("tablet") if isinstance(scan.get("tablet"), dict) else {},
+        # The face model's shading maps, image grid, passed on as they are to the whole tablet.
+        "shading_maps": {
+            f.name: f.read_bytes() for f in sorted(d.glob("*.png")) if f.name in SHADING_MAPS
+        },
     }
 
 

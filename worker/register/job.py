@@ -3,7 +3,8 @@
 Fetches the latest model of each scan of the job's tablet, registers them
 (:func:`worker.register.run.register_model_dirs`) and stores the result as a tablet-level
 model (no scan) through ``backend.jobs.mark_succeeded``: its assets are ``model.glb`` (the
-one-node-per-face scene, so the viewer shows the whole tablet), ``merged.ply``,
+one-node-per-face scene, so the viewer shows the whole tablet), ``faces/<label>/*.png`` (each
+face's full-resolution normals, blending weight and shading maps), ``merged.ply``,
 ``transforms.json``, ``report.json`` and ``fatcross/*.png``.
 """
 
@@ -19,12 +20,19 @@ from sqlalchemy import select
 
 from backend import jobs
 from backend.tables import Job, Model, Tablet
-from worker.register.io import RegisterInputError, write_output_dir
+from worker.register.io import SHADING_MAPS, RegisterInputError, write_output_dir
 from worker.register.run import register_model_dirs
 
 __all__ = ["MODEL_FILES", "run_job"]
 
-MODEL_FILES = ("report.json", "height.npy", "normals.npy", "mask.png", "albedo.png")
+MODEL_FILES = (
+    "report.json",
+    "height.npy",
+    "normals.npy",
+    "mask.png",
+    "albedo.png",
+    *SHADING_MAPS,
+)
 
 
 def _latest_models(session, tablet_id: int) -> list[tuple[int, str]]:

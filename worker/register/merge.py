@@ -13,12 +13,16 @@ from __future__ import annotations
 
 import numpy as np
 import trimesh
+from PIL import Image
+from scipy.ndimage import distance_transform_edt
 
+from worker.recon.glb import decimation_step
 from worker.recon.gltf_frame import wrap_scene_in_gltf_frame
+from worker.recon.mesh import grid_mesh as recon_grid_mesh
 from worker.register.o3d import o3d, point_cloud, transform_points
 from worker.register.pointcloud import ScanCloud
 
-__all__ = ["grid_mesh", "merged_surface", "scene_glb"]
+__all__ = ["face_normal_map", "grid_mesh", "merged_surface", "scene_glb"]
 
 
 def merged_surface(
@@ -65,39 +69,61 @@ def grid_mesh(
     pixel_size_um: float,
     max_triangles: int = 200_000,
 ) -> trimesh.Trimesh:
-    """The scan's own surface (scan frame, mm) as SCAN_BUNDLE.md's mesh, decimated by taking
-    every k-th row and column so that it has at most ``max_triangles``; vertex colours."""
+    """The scan's own surface (scan frame, mm) as SCAN_BUNDLE.md's mesh
+    (`worker.recon.mesh.grid_mesh`, decimated to at most ``max_triangles``) with the image
+    grid as TEXCOORD_0, u = (c + 0.5)/W, v = (r + 0.5)/H (as a face model's model.glb), so the
+    face's full-resolution maps (`face_normal_map`, its albedo) map onto it; the albedo is the
+    node's baseColorTexture (so a generic glTF viewer shows each face in colour)."""
     h = np.asarray(height_um, dtype=np.float64)
-    ok = np.asarray(mask, bool) & np.isfinite(h)
     rows, cols = h.shape
-    step = 1
-    while 2 * ((rows - 1) // step) * ((cols - 1) // step) > max_triangles:
-        step += 1
-    r = np.arange(0, rows, step)
-    c = np.arange(0, cols, step)
-    sub_ok = ok[np.ix_(r, c)]
-    index = -np.ones(sub_ok.shape, np.int64)
-    index[sub_ok] = np.arange(sub_ok.sum())
-    rr, cc = np.meshgrid(r, c, indexing="ij")
-    s_mm = pixel_size_um / 1000.0
-    verts = np.stack(
-        [cc[sub_ok] * s_mm, rr[sub_ok] * s_mm, -h[rr[sub_ok], cc[sub_ok]] / 1000.0], -1
+    step = decimation_step((rows, cols), max_triangles)
+    mesh = recon_grid_mesh(h, mask, pixel_size_um=pixel_size_um, step=step)
+    if len(mesh.faces) == 0:
+        raise ValueError("mask: no triangle can be made (fewer than 3 adjacent pixels)")
+    uv = np.stack([(mesh.cols + 0.5) / cols, (mesh.rows + 0.5) / rows], axis=1)
+    # trimesh flips v on export (its uv origin is the bottom left, glTF's the top left).
+    uv_trimesh = np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1)
+    image = None
+    if albedo_rgb8 is not None:
+        alb = np.asarray(albedo_rgb8, np.uint8)
+        alb = np.repeat(alb[..., None], 3, -1) if alb.ndim == 2 else alb[..., :3]
+        image = Image.fromarray(np.ascontiguousarray(alb))
+    material = trimesh.visual.material.PBRMaterial(
+        baseColorTexture=image, metallicFactor=0.0, roughnessFactor=1.0, doubleSided=True
     )
-    a, b = index[:-1, :-1], index[1:, :-1]
-    d, e = index[:-1, 1:], index[1:, 1:]
-    # (r,c) → (r+1,c) → (r,c+1) has its right-hand normal toward −z, the camera.
-    tris = np.concatenate(
-        [np.stack([a, b, d], -1).reshape(-1, 3), np.stack([d, b, e], -1).reshape(-1, 3)]
+    visual = trimesh.visual.TextureVisuals(uv=uv_trimesh, material=material)
+    return trimesh.Trimesh(
+        mesh.vertices_mm.astype(np.float64), mesh.faces, visual=visual, process=False
     )
-    tris = tris[np.all(tris >= 0, axis=1)]
-    if albedo_rgb8 is None:
-        rgb = np.full((len(verts), 3), 160, np.uint8)
-    else:
-        alb = np.asarray(albedo_rgb8)
-        rgb = alb[rr[sub_ok], cc[sub_ok]]
-        rgb = np.repeat(rgb[:, None], 3, 1) if rgb.ndim == 1 else rgb[:, :3]
-    rgba = np.concatenate([rgb.astype(np.uint8), np.full((len(verts), 1), 255, np.uint8)], 1)
-    return trimesh.Trimesh(verts, tris, vertex_colors=rgba, process=False)
+
+
+def face_normal_map(
+    normals: np.ndarray, mask: np.ndarray, *, pixel_size_um: float, feather_mm: float = 0.5
+) -> np.ndarray:
+    """(H, W, 4) uint8: RGB = (n + 1)/2 of the scan-frame normals (as a face model's
+    normals.png), A = 255·w, the face's blending weight where faces of the whole tablet overlap.
+
+    w = min(1, d / feather) · cos²θ: d is the Euclidean distance (px) to the nearest pixel off
+    the mask (pixels at the rim mix tablet and background), θ the normal's tilt from the view
+    axis (−z); cos²θ because a height sample's variance along the normal grows as 1/cos²θ
+    (the weighting of `worker.register.joint`), so the face that saw a stretch more squarely
+    measured it better. The viewer draws, in each overlap, the face of largest weight.
+    """
+    n = np.asarray(normals, np.float64)
+    m = np.asarray(mask, bool)
+    if n.ndim != 3 or n.shape[2] != 3 or n.shape[:2] != m.shape:
+        raise ValueError(f"normals must be (H, W, 3) and mask (H, W); got {n.shape}, {m.shape}")
+    if not pixel_size_um > 0 or not feather_mm > 0:
+        raise ValueError("pixel_size_um and feather_mm must be > 0")
+    ok = m & np.all(np.isfinite(n), axis=2)
+    feather_px = max(2.0, feather_mm * 1000.0 / pixel_size_um)
+    dist_px = distance_transform_edt(np.pad(ok, 1))[1:-1, 1:-1]
+    cos_tilt = np.clip(-np.nan_to_num(n[..., 2]), 0.0, 1.0)
+    weight = np.minimum(1.0, dist_px / feather_px) * cos_tilt**2
+    rgb = np.clip(np.rint((np.nan_to_num(n) + 1.0) * 127.5), 0, 255)
+    rgb[~ok] = (128, 128, 0)  # (0, 0, -1): facing the camera, never drawn (weight 0)
+    alpha = np.where(ok, np.rint(255 * weight), 0)
+    return np.concatenate([rgb, alpha[..., None]], axis=2).astype(np.uint8)
 
 
 def scene_glb(meshes: dict[str, trimesh.Trimesh], transforms: dict[str, np.ndarray]) -> bytes:

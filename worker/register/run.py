@@ -11,14 +11,55 @@ from scipy import ndimage
 
 from worker.bundle import is_simulated
 from worker.register.fatcross import FaceMaps
-from worker.register.io import load_model_dir
-from worker.register.merge import grid_mesh, merged_surface, scene_glb
+from worker.register.io import face_asset_dir, load_model_dir
+from worker.register.merge import face_normal_map, grid_mesh, merged_surface, scene_glb
 from worker.register.plates import DEFAULT_LICENCE, PlateInfo, fatcross_files
 from worker.register.refine import register_scans
 
-__all__ = ["register_model_dirs"]
+__all__ = ["face_files", "register_model_dirs", "whole_tablet_model"]
 
 DEFAULT_PX_PER_MM = 600 / 25.4  # 600 dpi
+
+
+def whole_tablet_model(loaded: list[tuple], transforms: list) -> dict[str, bytes]:
+    """The whole tablet for the viewer: ``model.glb`` (one node per face, scan → tablet
+    transform, image-grid TEXCOORD_0, albedo) and every face's maps (`face_files`).
+    ``loaded``: `load_model_dir` results; ``transforms``: 4×4 scan → tablet (mm), same order."""
+    meshes = {
+        c.label: grid_mesh(
+            raw["height_um"], raw["mask"], raw["albedo"], pixel_size_um=raw["pixel_size_um"]
+        )
+        for c, raw in loaded
+    }
+    labels = [c.label for c, _ in loaded]
+    files = {"model.glb": scene_glb(meshes, dict(zip(labels, transforms, strict=True)))}
+    for c, raw in loaded:
+        files.update(face_files(c.label, raw))
+    return files
+
+
+def face_files(label: str, raw: dict) -> dict[str, bytes]:
+    """One face's full-resolution maps for the whole tablet, on its own image grid (the GLB
+    node of that face carries the image-grid TEXCOORD_0): ``faces/<label>/normals.png``
+    (scan-frame normals with the blending weight in alpha, `face_normal_map`) and the face
+    model's shading maps (curvature, accessibility) as they are. The albedo is the node's
+    baseColorTexture in model.glb."""
+    prefix = face_asset_dir(label)
+    rgba = face_normal_map(raw["normals"], raw["mask"], pixel_size_um=raw["pixel_size_um"])
+    out = {f"{prefix}/normals.png": _png(rgba)}
+    for name, data in raw.get("shading_maps", {}).items():
+        out[f"{prefix}/{name}"] = data
+    return out
+
+
+def _png(image) -> bytes:
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(image).save(buf, format="PNG", compress_level=6)
+    return buf.getvalue()
 
 
 def register_model_dirs(
@@ -44,13 +85,8 @@ def register_model_dirs(
     timings["register"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     merged = merged_surface(scans, reg.transforms)
-    meshes = {
-        c.label: grid_mesh(
-            raw["height_um"], raw["mask"], raw["albedo"], pixel_size_um=raw["pixel_size_um"]
-        )
-        for c, raw in loaded
-    }
-    glb = scene_glb(meshes, dict(zip(labels, reg.transforms, strict=True)))
+    files = whole_tablet_model(loaded, reg.transforms)
+    glb = files.pop("model.glb")
     timings["merge"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     # The plates shade with each scan's own normals, steep wedge walls included (the
@@ -71,7 +107,7 @@ def register_model_dirs(
         licence=licence,
         simulated=any(is_simulated(raw.get("tablet") or {}) for _, raw in loaded),
     )
-    files, fatcross_report = fatcross_files(
+    plate_files, fatcross_report = fatcross_files(
         merged.vertices,
         merged.faces,
         merged.visual.vertex_colors,
@@ -81,6 +117,7 @@ def register_model_dirs(
         name=name,
         info=info,
     )
+    files.update(plate_files)
     timings["fatcross"] = time.perf_counter() - t0
     transforms = {
         "convention": "X_tablet = rotation @ X_scan + translation_mm; scan frame as in "

@@ -137,8 +137,14 @@ def manifest(
     noise: NoiseModel,
     polar_deg: float,
     reflectance: float,
+    psf_sigma_px: float | None = None,
+    physics_name: str = "ideal",
 ) -> dict:
-    """The manifest.json of the scan (SCAN_BUNDLE.md v1)."""
+    """The manifest.json of the scan (SCAN_BUNDLE.md v1).
+
+    ``psf_sigma_px``: the camera's calibrated PSF σ, written only when given. The scan id
+    names a physics variant other than ``ideal`` (ideal ids are unchanged).
+    """
     out = []
     for frame, file in zip(frames, files, strict=True):
         entry: dict = {"file": file, "kind": frame.kind}
@@ -155,22 +161,28 @@ def manifest(
         if frame.exposure != 1.0:
             entry["exposure"] = frame.exposure
         out.append(entry)
+    scan_id = f"sim-{seed}-{face}-{width}x{height}-{noise.name}"
+    if physics_name != "ideal":
+        scan_id += f"-{physics_name}"
+    camera = {
+        "width": width,
+        "height": height,
+        "pixel_size_um": pixel_size_um,
+        "bit_depth": noise.bit_depth,
+        "response_gamma": noise.response_gamma,
+    }
+    if psf_sigma_px is not None:
+        camera["psf_sigma_px"] = psf_sigma_px
     return {
         "format": "cuneiform-scan",
         "version": 1,
         "scan": {
-            "id": f"sim-{seed}-{face}-{width}x{height}-{noise.name}",
+            "id": scan_id,
             "face": face,
             "pose": np.asarray(pose, float).tolist(),
             "tablet": {"designation": f"synthetic tablet {seed}", "simulator": "worker.simulate"},
         },
-        "camera": {
-            "width": width,
-            "height": height,
-            "pixel_size_um": pixel_size_um,
-            "bit_depth": noise.bit_depth,
-            "response_gamma": noise.response_gamma,
-        },
+        "camera": camera,
         "source": {"polar_deg": polar_deg},
         "reference": {"reflectance": reflectance},
         "frames": out,

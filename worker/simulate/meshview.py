@@ -18,7 +18,7 @@ import trimesh
 
 from worker.simulate.view import View, assemble_view, sample_coords_um
 
-__all__ = ["MeshTablet", "load_mesh", "render_mesh_view"]
+__all__ = ["MeshTablet", "load_mesh", "mesh_points", "render_mesh_view"]
 
 CLAY_RGB = (0.46, 0.34, 0.23)
 _CHUNK = 2_000_000  # candidate samples per vectorised batch
@@ -113,6 +113,35 @@ def _rasterise(tri: np.ndarray, xs: np.ndarray, ys: np.ndarray, step: float):
     return depth.reshape(hs, ws), tri_id.reshape(hs, ws), bary.reshape(hs, ws, 3)
 
 
+def mesh_points(
+    tablet: MeshTablet,
+    pose: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    t_xy: np.ndarray,
+    step: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Depth z (len(ys), len(xs)) µm in the view frame (inf: none), flat triangle normals
+    (NaN: none) and linear RGB albedo of the mesh at pose·X + t_xy, on the grid (xs, ys)."""
+    verts = tablet.vertices_um @ pose.T + t_xy
+    tri = verts[tablet.faces]
+    depth, tri_id, bary = _rasterise(tri, xs, ys, step)
+    hit = tri_id >= 0
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    normals = np.full((*depth.shape, 3), np.nan)
+    normals[hit] = n[tri_id[hit]]
+    # The camera sees the side facing it whatever the file's winding: n_z < 0.
+    normals[hit] *= np.where(normals[hit][:, 2:] > 0, -1.0, 1.0)
+    if tablet.vertex_rgb is None:
+        albedo = np.broadcast_to(np.array(CLAY_RGB, np.float32), (*depth.shape, 3))
+    else:
+        corner = tablet.vertex_rgb[tablet.faces[tri_id[hit]]]  # (N, 3 corners, 3)
+        albedo = np.zeros((*depth.shape, 3), np.float32)
+        albedo[hit] = np.einsum("nk,nkc->nc", bary[hit], corner)
+    return depth, normals, albedo
+
+
 def render_mesh_view(
     tablet: MeshTablet,
     pose: np.ndarray,
@@ -136,22 +165,7 @@ def render_mesh_view(
             0.0,
         ]
     )
-    verts = tablet.vertices_um @ pose.T + t_xy
-    tri = verts[tablet.faces]
-    depth, tri_id, bary = _rasterise(tri, xs, ys, pixel_size_um / supersample)
-    hit = tri_id >= 0
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
-    normals = np.full((*depth.shape, 3), np.nan)
-    normals[hit] = n[tri_id[hit]]
-    # The camera sees the side facing it whatever the file's winding: n_z < 0.
-    normals[hit] *= np.where(normals[hit][:, 2:] > 0, -1.0, 1.0)
-    if tablet.vertex_rgb is None:
-        albedo = np.broadcast_to(np.array(CLAY_RGB, np.float32), (*depth.shape, 3))
-    else:
-        corner = tablet.vertex_rgb[tablet.faces[tri_id[hit]]]  # (N, 3 corners, 3)
-        albedo = np.zeros((*depth.shape, 3), np.float32)
-        albedo[hit] = np.einsum("nk,nkc->nc", bary[hit], corner)
+    depth, normals, albedo = mesh_points(tablet, pose, xs, ys, t_xy, pixel_size_um / supersample)
     return assemble_view(
         width, height, pixel_size_um, supersample, depth, normals, albedo, pose, t_xy
     )

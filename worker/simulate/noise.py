@@ -153,11 +153,13 @@ def encode_frame(
     exposure: float,
     offset_e: np.ndarray,
     rng: np.random.Generator,
+    hot_e: np.ndarray | None = None,
 ) -> np.ndarray:
     """Stored values of one frame, (H, W) uint16 in 0 .. 2^bit_depth - 1.
 
     ``radiance`` (H, W) is linear, in units of the full scale at exposure 1 (zeros for a
-    dark frame); ``offset_e`` (H, W) is ``fixed_pattern_e``; ``rng`` draws shot and read noise.
+    dark frame); ``offset_e`` (H, W) is ``fixed_pattern_e``; ``rng`` draws shot and read noise;
+    ``hot_e`` (H, W), if given, is the extra dark current of hot pixels per unit exposure.
     """
     if exposure <= 0:
         raise ValueError(f"exposure must be > 0, got {exposure}")
@@ -168,6 +170,8 @@ def encode_frame(
         )
     signal_e = np.clip(radiance, 0.0, None) * (exposure * noise.full_well_e)
     signal_e += noise.dark_current_e * exposure
+    if hot_e is not None:
+        signal_e += hot_e * exposure
     if noise.shot_noise:
         # Beyond ~4 full wells the Poisson draw is pointless (clipped anyway) and slow.
         signal_e = rng.poisson(np.minimum(signal_e, 4 * noise.full_well_e)).astype(np.float64)

@@ -7,6 +7,7 @@ per face under ``OUT/<face>/`` plus ``OUT/poses.json`` and ``OUT/tablet.ply``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import sys
@@ -19,15 +20,18 @@ import trimesh
 from worker.bundle import write_bundle
 from worker.durable import npy_bytes, replace_dir_atomic, write_file_atomic, write_new_file
 from worker.simulate.acquisition import PRESETS, frame_file, manifest, pixel_size_for, plan_frames
-from worker.simulate.meshview import MeshTablet, load_mesh, render_mesh_view
+from worker.simulate.meshview import MeshTablet, load_mesh, mesh_points, render_mesh_view
 from worker.simulate.noise import NoiseModel, noise_model
+from worker.simulate.physics import IDEAL, Physics, physics_to_dict, resolve_physics
 from worker.simulate.rig import Rig, render_frame
+from worker.simulate.support import scale_albedo, with_support
 from worker.simulate.tablet import FACE_POSES, FACES, Tablet, make_tablet
-from worker.simulate.view import View, render_view
+from worker.simulate.view import View, cast_grid, render_view
 
 __all__ = [
     "SimulationResult",
     "parse_size",
+    "point_truth",
     "scan_rig",
     "scene",
     "simulate_scan",
@@ -101,14 +105,63 @@ def wedge_records(tablet: Tablet | MeshTablet, view: View) -> list[dict]:
     return out
 
 
-def _write_gt(gt_dir: Path, view: View, tablet: Tablet | MeshTablet) -> None:
-    gt = view.ground_truth()
+SIMULATOR = {"name": "worker.simulate", "version": 2}  # version: bump when frames change
+
+
+def point_truth(
+    tablet: Tablet | MeshTablet, view: View, *, albedo_scale: float = 1.0
+) -> dict[str, np.ndarray]:
+    """Ground truth as SCAN_BUNDLE.md defines the output: point samples at pixel centres.
+
+    One ray per pixel through p = (c·s, r·s), in the view's frame (its pose and
+    translation): height (H, W) µm, normals (H, W, 3) (the surface's own normal there),
+    albedo (H, W, 3) linear RGB (times ``albedo_scale``, clipped to 0.95 as in the frames),
+    mask (H, W) as ``View.ground_truth`` (every sample of the pixel on the tablet); NaN
+    outside the mask.
+    """
+    s = view.pixel_size_um
+    xs, ys = np.arange(view.width) * s, np.arange(view.height) * s
+    t_xy = np.array([view.translation_um[0], view.translation_um[1], 0.0])
+    if isinstance(tablet, MeshTablet):
+        z, normals, albedo = mesh_points(tablet, view.pose, xs, ys, t_xy, s)
+        albedo = np.array(albedo, np.float64)
+    else:
+        z, normals = cast_grid(tablet, view.pose, xs, ys, t_xy, s)
+    height = -view.translation_um[2] - z
+    mask = view.ground_truth()["mask"] & np.isfinite(z)
+    if not isinstance(tablet, MeshTablet):
+        gx, gy = np.meshgrid(xs, ys)
+        pts = np.stack([gx[mask], gy[mask], -height[mask]], -1)
+        albedo = np.zeros((*z.shape, 3))
+        albedo[mask] = tablet.albedo((pts - view.translation_um) @ view.pose)
+    if albedo_scale != 1.0:
+        albedo = np.clip(albedo * np.float32(albedo_scale), 0.0, 0.95)
+    out = {"height": height, "normals": np.array(normals, np.float64), "albedo": albedo}
+    for a in out.values():
+        a[~mask] = np.nan
+    out = {k: v.astype(np.float32) for k, v in out.items()}
+    out["mask"] = mask
+    return out
+
+
+def _write_gt(
+    gt_dir: Path, view: View, tablet: Tablet | MeshTablet, physics: Physics, physics_seed
+) -> None:
+    gt = point_truth(tablet, view, albedo_scale=physics.albedo_scale)
+    area = view.ground_truth()["height"]
 
     def fill(tmp: Path) -> None:
         for name in ("height", "normals", "albedo", "mask"):
             write_new_file(tmp / f"{name}.npy", npy_bytes(gt[name]))
+        write_new_file(tmp / "height_area.npy", npy_bytes(area))
         text = json.dumps({"wedges": wedge_records(tablet, view)}, indent=1)
         write_new_file(tmp / "wedges.json", text.encode())
+        doc = {
+            "simulator": SIMULATOR,
+            "physics_seed": physics_seed,
+            "physics": physics_to_dict(physics),
+        }
+        write_new_file(tmp / "physics.json", json.dumps(doc, indent=1).encode())
 
     replace_dir_atomic(gt_dir, fill)
 
@@ -122,13 +175,21 @@ def _check_fringe_range(view: View, preset_polar_deg: float, coarsest_um: float)
         )
 
 
-def scan_rig(seed: int, width: int, height: int, pixel_size_um: float, noise: NoiseModel) -> Rig:
+def scan_rig(
+    seed: int,
+    width: int,
+    height: int,
+    pixel_size_um: float,
+    noise: NoiseModel,
+    physics: Physics = IDEAL,
+) -> Rig:
     """The instrument of a simulated scan (the same for every face of a seed)."""
     return Rig(
         seed,
         width * pixel_size_um,
         height * pixel_size_um,
-        irradiance_variation=noise.irradiance_variation,
+        irradiance_variation=physics.camera(noise).irradiance_variation,
+        physics=physics,
     )
 
 
@@ -140,10 +201,12 @@ def scene(
     size: tuple[int, int],
     preset: str = "quick",
     noise: NoiseModel,
+    physics: Physics = IDEAL,
 ) -> tuple[View, Rig]:
     """The view and instrument that ``simulate_scan`` uses for one pose, for callers that
     render frames themselves (the rig agent's simulated camera: ``render_frame(view, frame,
-    noise, rng, rig=rig)``)."""
+    noise, rng, rig=rig)``). ``physics`` adds the support and clay albedo to the view and
+    rides in the rig (``render_frame`` applies its camera overrides to ``noise``)."""
     width, height = size
     pixel = pixel_size_for(width, height)
     render = render_mesh_view if isinstance(tablet, MeshTablet) else render_view
@@ -155,7 +218,8 @@ def scene(
         pixel_size_um=pixel,
         supersample=PRESETS[preset].supersample,
     )
-    return view, scan_rig(seed, width, height, pixel, noise)
+    view = with_support(scale_albedo(view, physics.albedo_scale), physics.support, seed)
+    return view, scan_rig(seed, width, height, pixel, noise, physics)
 
 
 def _simulate_face(
@@ -170,20 +234,25 @@ def _simulate_face(
     as_zip: bool,
     progress: bool,
     pose: np.ndarray | None = None,
+    physics: Physics = IDEAL,
+    physics_seed: int | None = None,
 ) -> tuple[Path, Path, View, int]:
     from tqdm import tqdm
 
     preset = PRESETS[preset_name]
     width, height = size
     pose = FACE_POSES[face] if pose is None else pose
-    view, rig = scene(tablet, pose, seed=seed, size=size, preset=preset_name, noise=noise)
+    view, rig = scene(
+        tablet, pose, seed=seed, size=size, preset=preset_name, noise=noise, physics=physics
+    )
     pixel = view.pixel_size_um
+    camera = physics.camera(noise)
     frames = plan_frames(
         preset,
         width=width,
         height=height,
         pixel_size_um=pixel,
-        noise=noise,
+        noise=camera,
         rng=np.random.default_rng([seed, 0xE0]),
     )
     coarsest = min(  # the coarsest period of each azimuth must do; check the smallest of them
@@ -204,7 +273,7 @@ def _simulate_face(
         )
     ):
         rng = np.random.default_rng([seed, face_id, i])
-        images[file] = render_frame(view, frame, noise, rng, rig=rig)
+        images[file] = render_frame(view, frame, camera, rng, rig=rig)
     view.cache.clear()  # shadows and fringe terms: hundreds of MB at the paper size
     doc = manifest(
         frames,
@@ -215,15 +284,17 @@ def _simulate_face(
         width=width,
         height=height,
         pixel_size_um=pixel,
-        noise=noise,
+        noise=camera,
         polar_deg=preset.polar_deg,
         reflectance=rig.reflectance_reference,
+        psf_sigma_px=physics.calibrated_psf_px(noise),
+        physics_name=physics.name,
     )
     face_dir.mkdir(parents=True, exist_ok=True)
     bundle = face_dir / ("bundle.zip" if as_zip else "bundle")
     write_bundle(bundle, doc, images, as_zip=as_zip)
     gt_dir = face_dir / "gt"
-    _write_gt(gt_dir, view, tablet)
+    _write_gt(gt_dir, view, tablet, physics, physics_seed)
     return bundle, gt_dir, view, len(frames)
 
 
@@ -239,9 +310,15 @@ def simulate_scan(
     progress: bool = False,
     mesh: str | os.PathLike | None = None,
     pose: np.ndarray | None = None,
+    physics: str | Physics = "ideal",
+    physics_seed: int | None = None,
 ) -> SimulationResult:
     """Simulate the scan of one face (or ``"all"`` six) of the synthetic tablet of ``seed``,
     or of the triangle mesh file ``mesh`` (mm, obverse toward -z; no wedges.json entries).
+
+    ``physics``: a ``Physics``, a name in ``PHYSICS_VARIANTS`` or ``"random"`` (drawn from
+    ``physics_seed``, default ``seed``); written to ``gt/physics.json``. A mesh keeps its
+    own shape (the physics' ``shape`` is then recorded as ``standard``).
 
     ``pose`` (3×3 rotation tablet→view) replaces the face's standard pose, for oblique views;
     ``face`` then only labels the scan (``"other"`` is allowed).
@@ -261,6 +338,13 @@ def simulate_scan(
         if pose.shape != (3, 3) or not np.allclose(pose @ pose.T, np.eye(3), atol=1e-6):
             raise ValueError("pose: must be a 3×3 rotation matrix")
     model = noise if isinstance(noise, NoiseModel) else noise_model(noise)
+    if physics_seed is None:
+        physics_seed = seed
+    elif isinstance(physics_seed, bool) or not isinstance(physics_seed, int) or physics_seed < 0:
+        raise ValueError(f"physics_seed: must be an integer >= 0, got {physics_seed!r}")
+    drawn = resolve_physics(physics, physics_seed)
+    if mesh is not None and drawn.shape != "standard":
+        drawn = dataclasses.replace(drawn, shape="standard")
     size = size or (PRESETS[preset].width, PRESETS[preset].height)
     out = Path(out_dir)
     dirs = {f: (out / f if face == "all" else out) for f in faces}
@@ -268,7 +352,7 @@ def simulate_scan(
         for name in ("bundle", "bundle.zip", "gt"):
             if (d / name).exists():
                 raise FileExistsError(f"out: {d / name} exists; choose an empty --out")
-    tablet = load_mesh(mesh) if mesh is not None else make_tablet(seed)
+    tablet = load_mesh(mesh) if mesh is not None else make_tablet(seed, shape=drawn.shape)
     bundles, gts, views, n = {}, {}, {}, 0
     for f in faces:
         bundles[f], gts[f], views[f], k = _simulate_face(
@@ -282,6 +366,8 @@ def simulate_scan(
             as_zip=as_zip,
             progress=progress,
             pose=pose,
+            physics=drawn,
+            physics_seed=physics_seed,
         )
         n += k
     if face == "all":

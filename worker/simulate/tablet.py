@@ -8,6 +8,7 @@ the camera).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -234,10 +235,74 @@ def _make_albedo(rng: np.random.Generator, pillow: Pillow) -> Albedo:
     )
 
 
-def make_tablet(seed: int) -> Tablet:
-    """The synthetic tablet of ``seed``: the same seed always gives the same tablet."""
+SHAPES = ("standard", "flat", "curved", "broken")
+
+
+def _reshape(pillow: Pillow, shape: str) -> Pillow:
+    """``flat``: faces that hardly bulge and half the roughness; ``curved``: faces that
+    bulge 3-4 times more (2-3.4 mm on the obverse). The inscription then follows the face."""
+    if shape == "flat":
+        return dataclasses.replace(
+            pillow,
+            bulge_obverse_um=0.1 * pillow.bulge_obverse_um,
+            bulge_reverse_um=0.1 * pillow.bulge_reverse_um,
+            amplitudes_um=0.5 * pillow.amplitudes_um,
+        )
+    if shape == "curved":
+        return dataclasses.replace(
+            pillow,
+            bulge_obverse_um=4.0 * pillow.bulge_obverse_um,
+            bulge_reverse_um=3.0 * pillow.bulge_reverse_um,
+        )
+    return pillow
+
+
+def _break(pillow: Pillow, rng: np.random.Generator) -> list[Polyhedron]:
+    """A broken tablet: one side cut off by a fracture of 2-4 planar facets (a jagged,
+    roughly planar break through the whole thickness), removing 15-35 % of the width or
+    height. Each facet is the part of a box around the tablet beyond a tilted plane."""
+    # Inside the ray caster's bounding box (which holds the whole body): a ray that leaves
+    # the cavity there is marched on and misses, instead of stopping on the box.
+    half = pillow.bounding_half_um - 0.5
+    axis = int(rng.integers(0, 2))
+    side = float(rng.choice([-1.0, 1.0]))
+    depth = rng.uniform(0.15, 0.35) * 2 * pillow.half_size_um[axis]
+    cut = side * (pillow.half_size_um[axis] - depth)
+    pieces = []
+    n_facets = int(rng.integers(2, 5))
+    along = 1 - axis
+    edges = np.linspace(-half[along], half[along], n_facets + 1)
+    for k in range(n_facets):
+        normal = np.zeros(3)
+        normal[axis] = side
+        normal[along] = rng.uniform(-0.35, 0.35)
+        normal[2] = rng.uniform(-0.3, 0.3)
+        normal /= np.linalg.norm(normal)
+        centre = np.zeros(3)
+        centre[axis] = cut + rng.uniform(-800.0, 800.0)
+        centre[along] = 0.5 * (edges[k] + edges[k + 1])
+        lo, hi = -half.copy(), half.copy()
+        lo[along], hi[along] = edges[k] - (k > 0) * 1.0, edges[k + 1] + (k < n_facets - 1) * 1.0
+        normals = [-normal, *np.eye(3), *(-np.eye(3))]
+        offsets = [float(-normal @ centre), *hi, *(-lo)]
+        pieces.append(Polyhedron(np.array(normals), np.array(offsets)))
+    return pieces
+
+
+def _inside(pieces: list[Polyhedron], point_um: np.ndarray) -> bool:
+    return any(np.all(p.normals @ point_um <= p.offsets) for p in pieces)
+
+
+def make_tablet(seed: int, *, shape: str = "standard") -> Tablet:
+    """The synthetic tablet of ``seed``: the same seed always gives the same tablet.
+
+    ``shape`` (``SHAPES``) changes the body: ``flat``, ``curved`` or ``broken`` (one side
+    broken off; its wedges go with it). ``standard`` is the tablet of the seed unchanged.
+    """
+    if shape not in SHAPES:
+        raise ValueError(f"shape: unknown {shape!r}; choose from {SHAPES}")
     rng = np.random.default_rng([seed, 0x7AB1E7])
-    pillow = make_pillow(rng)
+    pillow = _reshape(make_pillow(rng), shape)
     wedges: list[Wedge] = []
     pieces: list[Polyhedron] = []
     for face in ("obverse", "reverse"):
@@ -248,6 +313,11 @@ def make_tablet(seed: int) -> Tablet:
         wedges += _inscribe_edge(pillow, face, rng)
     pieces += _chips(pillow, rng, int(rng.integers(2, 5)))
     pieces = [pc for wd in wedges for pc in wd.pieces] + pieces
+    if shape == "broken":
+        # Drawn from its own stream so that the rest of the tablet stays the seed's.
+        breaks = _break(pillow, np.random.default_rng([seed, 0xB4EA]))
+        wedges = [w for w in wedges if not any(_inside(breaks, p) for p in (w.apex_um, *w.rim_um))]
+        pieces += breaks
     spheres = [pc.bounding_sphere() for pc in pieces]
     cavities = Cavities.from_polyhedra(
         [(pc.normals, pc.offsets) for pc in pieces],

@@ -3,9 +3,10 @@
 View frame = the spec's frame: the centre of pixel (r, c) images (c·s, r·s), the camera
 looks along +z and a visible surface point is (x, y, -h). A tablet point X maps to
 ``pose @ X + translation_um``. Each pixel is sampled at ``supersample``² points
-(centres of a regular sub-grid); ground truth is the box average over them, normals
-from the averaged slopes so that they agree with the averaged heights:
-``n ∝ (-mean ∂h/∂x, -mean ∂h/∂y, -1)``.
+(centres of a regular sub-grid). ``View.ground_truth`` is the box average over them,
+normals from the averaged slopes so that they agree with the averaged heights:
+``n ∝ (-mean ∂h/∂x, -mean ∂h/∂y, -1)``; the ground truth written beside a bundle is the
+point sample at each pixel centre (``scan.point_truth``, SCAN_BUNDLE.md's output).
 """
 
 from __future__ import annotations
@@ -18,7 +19,15 @@ import numpy as np
 from worker.simulate.raycast import cast_rays
 from worker.simulate.tablet import Tablet
 
-__all__ = ["View", "assemble_view", "box_mean", "flat_view", "render_view", "sample_coords_um"]
+__all__ = [
+    "View",
+    "assemble_view",
+    "box_mean",
+    "cast_grid",
+    "flat_view",
+    "render_view",
+    "sample_coords_um",
+]
 
 BACKGROUND_REFLECTANCE = 0.03  # black velvet support
 BACKGROUND_GAP_UM = 3000.0  # support plane below the lowest visible tablet point
@@ -175,11 +184,30 @@ def render_view(
             0.0,
         ]
     )
+    z, normals = cast_grid(tablet, pose, xs, ys, t_xy, pixel_size_um / supersample, rows_per_chunk)
+    return assemble_view(
+        width, height, pixel_size_um, supersample, z, normals, tablet.albedo, pose, t_xy
+    )
+
+
+def cast_grid(
+    tablet: Tablet,
+    pose: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    t_xy: np.ndarray,
+    step: float,
+    rows_per_chunk: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Orthographic rays along +z through view points (xs, ys) µm, the tablet at pose·X + t_xy.
+
+    Returns z (len(ys), len(xs)) µm of the first hit in the view frame (inf: none) and the
+    view-frame normals there (NaN: none); ``step`` is the grid spacing (for cavity windows).
+    """
     hs, ws = len(ys), len(xs)
     d_tab = pose.T @ np.array([0.0, 0.0, 1.0])
     cav = tablet.cavities
     centres_view = cav.centres_um @ pose.T + t_xy
-    step = pixel_size_um / supersample
     chunk = rows_per_chunk or max(1, 400_000 // ws)
     z0 = 2.0 * tablet.pillow.bounding_radius_um  # rays start in front of the tablet
     z = np.full((hs, ws), np.inf)
@@ -206,9 +234,7 @@ def render_view(
         hits = cast_rays(tablet.pillow, cav, origins, d_tab, candidates)
         z[r0:r1] = hits.t_um.reshape(r1 - r0, ws) - z0
         normals[r0:r1] = (hits.normals @ pose.T).reshape(r1 - r0, ws, 3)
-    return assemble_view(
-        width, height, pixel_size_um, supersample, z, normals, tablet.albedo, pose, t_xy
-    )
+    return z, normals
 
 
 def assemble_view(

@@ -117,10 +117,38 @@ export function robustRange(values) {
 }
 
 /**
+ * Folder of a face's maps among a whole-tablet model's assets (`faces/<name>/normals.png`, …):
+ * the node name with every character but ASCII letters, digits, '-', '_' and '.' replaced by
+ * '_' (worker/register/io.py's `face_asset_dir`, the same rule).
+ */
+export function faceAssetPrefix(name) {
+  const safe = [...String(name)].map((ch) => (/^[A-Za-z0-9._-]$/.test(ch) ? ch : '_')).join('');
+  return `faces/${safe.replace(/^\.+|\.+$/g, '') || '_'}`;
+}
+
+/** A face's own maps among the assets: {normals, curvature: [], accessibility} (names or null). */
+export function classifyFaceAssets(assets, name) {
+  const prefix = `${faceAssetPrefix(name)}/`;
+  const own = Object.fromEntries(
+    Object.entries(assets ?? {})
+      .filter(([n]) => n.startsWith(prefix) && !n.slice(prefix.length).includes('/'))
+      .map(([n, url]) => [n.slice(prefix.length), url]),
+  );
+  const c = classifyAssets(own);
+  const full = (n) => (n ? prefix + n : null);
+  return {
+    normals: full(c.normals),
+    curvature: c.curvature.map(full),
+    accessibility: full(c.accessibility),
+  };
+}
+
+/**
  * The GLB's meshes as one geometry in the scene's frame. A scene of several nodes (the
  * whole-tablet model: one node per scanned face) becomes one draw group per mesh, named after
- * its node (`parts`), so faces can be hidden; its per-node textures are dropped (one albedo
- * cannot serve all faces), so it is lit by its mesh normals and drawn in clay colour.
+ * its node (`parts`), so faces can be hidden; each part keeps its own albedo (the node's
+ * baseColorTexture) and the rotation of its node (scan → tablet), under which its object-space
+ * normal map (`faces/<name>/normals.png`, scan frame) is turned into the tablet frame.
  */
 async function glbToGeometry(buffer) {
   const gltf = await new GLTFLoader().parseAsync(buffer, '');
@@ -133,32 +161,36 @@ async function glbToGeometry(buffer) {
     if (obj.userData?.scan_frame) toScanFrame.copy(obj.matrixWorld).invert();
   });
   const geometries = [];
-  const partNames = [];
-  let glbAlbedo = null;
+  const partInfo = [];
   const junk = new Set();
   gltf.scene.traverse((obj) => {
     if (!obj.isMesh) return;
     const g = obj.geometry.clone();
-    g.applyMatrix4(new THREE.Matrix4().multiplyMatrices(toScanFrame, obj.matrixWorld));
+    const toWorld = new THREE.Matrix4().multiplyMatrices(toScanFrame, obj.matrixWorld);
+    g.applyMatrix4(toWorld);
     for (const name of Object.keys(g.attributes)) {
       if (!['position', 'normal', 'uv'].includes(name)) g.deleteAttribute(name);
     }
     if (!g.attributes.normal) g.computeVertexNormals();
     geometries.push(g);
-    // A one-primitive node is the Mesh itself; a multi-primitive node is its parent Group.
-    partNames.push(obj.name || obj.parent?.name || '');
     obj.geometry.dispose();
     const mats = Array.isArray(obj.material) ? obj.material : [obj.material];
+    let albedo = null;
     for (const m of mats) {
-      if (!glbAlbedo && m.map) glbAlbedo = m.map;
-      for (const v of Object.values(m)) if (v?.isTexture) junk.add(v);
+      if (!albedo && m.map) albedo = m.map;
+      for (const v of Object.values(m)) if (v?.isTexture && v !== albedo) junk.add(v);
       m.dispose();
     }
+    partInfo.push({
+      // A one-primitive node is the Mesh itself; a multi-primitive node is its parent Group.
+      name: obj.name || obj.parent?.name || '',
+      albedo,
+      rotation: new THREE.Matrix3().setFromMatrix4(new THREE.Matrix4().extractRotation(toWorld)),
+      hasUv: Boolean(obj.geometry.attributes.uv),
+    });
   });
   if (!geometries.length) throw new Error('model.glb holds no mesh');
   const multi = geometries.length > 1;
-  if (!multi) junk.delete(glbAlbedo);
-  else glbAlbedo = null;
   for (const t of junk) disposeTexture(t);
   if (multi) {
     for (const g of geometries) {
@@ -180,7 +212,12 @@ async function glbToGeometry(buffer) {
   if (multi) for (const g of geometries) g.dispose();
   if (!geometry) throw new Error('model.glb: its meshes have different attributes');
   if (!geometry.attributes.uv) throw new Error('model.glb has no texture coordinates (TEXCOORD_0)');
-  return { geometry, glbAlbedo, parts: multi ? partNames : [] };
+  const glbAlbedo = multi ? null : partInfo[0].albedo;
+  if (multi) {
+    // The albedo of a part without an image grid cannot be mapped; drop it.
+    for (const p of partInfo) if (!p.hasUv && p.albedo) disposeTexture(p.albedo), (p.albedo = null);
+  }
+  return { geometry, glbAlbedo, parts: multi ? partInfo : [] };
 }
 
 function disposeTexture(t) {
@@ -217,6 +254,7 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
     names,
     geometry: null,
     parts: [],
+    faces: [],
     normals: null,
     albedo: null,
     curvature: null,
@@ -242,7 +280,22 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
     ]);
     const { geometry, glbAlbedo, parts } = await glbToGeometry(glbBuf);
     out.geometry = geometry;
-    out.parts = parts;
+    out.parts = parts.map((p) => p.name);
+    out.faces = parts.map((p) => ({
+      name: p.name,
+      assets: p.hasUv ? classifyFaceAssets(assets, p.name) : { normals: null, curvature: [], accessibility: null },
+      rotation: p.rotation,
+      albedo: track(p.albedo),
+      normals: null,
+      curvature: null,
+      accessibility: null,
+    }));
+    // Every face's full-resolution normals load with the mesh (they are what relights it).
+    await Promise.all(
+      out.faces.map(async (f) => {
+        if (f.assets.normals) f.normals = track(await bytesToTexture(await get(f.assets.normals), { srgb: false }));
+      }),
+    );
     out.normals = normalsBuf ? track(await bytesToTexture(normalsBuf, { srgb: false })) : null;
     if (albedoBuf) {
       out.albedo = track(await bytesToTexture(albedoBuf, { srgb: true }));
@@ -271,22 +324,33 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
   };
 
   async function loadKind(kind) {
+    if (out.faces.length && kind !== 'quality') {
+      // A whole tablet: each face's own map, on its own image grid.
+      let any = false;
+      await Promise.all(
+        out.faces.map(async (f) => {
+          if (kind === 'accessibility') {
+            f.accessibility = f.assets.accessibility
+              ? track(await bytesToTexture(await get(f.assets.accessibility), { srgb: false }))
+              : false;
+            any ||= Boolean(f.accessibility);
+          } else {
+            f.curvature = await curvatureLayers(f.assets.curvature);
+            any ||= f.curvature.length > 0;
+          }
+        }),
+      );
+      // The model-level entry says whether any face has it (for the mode's "missing" notice).
+      if (kind === 'accessibility') out.accessibility = any ? out.faces.find((f) => f.accessibility).accessibility : false;
+      else out.curvature = any ? out.faces.find((f) => f.curvature.length).curvature : [];
+      return;
+    }
     if (kind === 'accessibility') {
       out.accessibility = names.accessibility
         ? track(await bytesToTexture(await get(names.accessibility), { srgb: false }))
         : false;
     } else if (kind === 'curvature') {
-      const layers = [];
-      for (const name of names.curvature) {
-        const texture = track(await bytesToTexture(await get(name), { srgb: false }));
-        layers.push({ name, texture, lod: 0, label: name });
-      }
-      if (layers.length === 1) {
-        for (const lod of SMOOTHED_CURVATURE_LODS) {
-          layers.push({ ...layers[0], lod, label: `${layers[0].name}, smoothed over ${2 ** lod} px` });
-        }
-      }
-      out.curvature = layers;
+      out.curvature = await curvatureLayers(names.curvature);
     } else if (kind === 'quality') {
       const maps = [];
       for (const name of names.quality) {
@@ -300,6 +364,21 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
       }
       out.quality = maps;
     }
+  }
+
+  async function curvatureLayers(curvatureNames) {
+    const layers = [];
+    for (const name of curvatureNames) {
+      const texture = track(await bytesToTexture(await get(name), { srgb: false }));
+      const short = name.split('/').pop();
+      layers.push({ name: short, texture, lod: 0, label: short });
+    }
+    if (layers.length === 1) {
+      for (const lod of SMOOTHED_CURVATURE_LODS) {
+        layers.push({ ...layers[0], lod, label: `${layers[0].name}, smoothed over ${2 ** lod} px` });
+      }
+    }
+    return layers;
   }
 
   return out;

@@ -6,8 +6,8 @@
 export const SHORTCUTS = Object.freeze([
   { keys: ['ArrowLeft', 'ArrowRight'], label: '← →', action: 'light-azimuth', help: 'turn the light around the tablet (5°; with Shift 1°)' },
   { keys: ['ArrowUp', 'ArrowDown'], label: '↑ ↓', action: 'light-polar', help: 'raise / lower the light (5°; with Shift 1°)' },
-  { keys: ['1', '2', '3', '4', '5', '6', '7', '8'], label: '1 … 8', action: 'raking', help: 'raking light from the bottom, bottom-right, right, … (every 45°)' },
-  { keys: ['9'], label: '9', action: 'overhead', help: 'light from the camera direction' },
+  { keys: ['1', '2', '3', '4', '5', '6', '7', '8'], label: '1 … 8', action: 'raking', help: 'raking light from the bottom, bottom-right, right, … of the view (every 45°)' },
+  { keys: ['9'], label: '9', action: 'overhead', help: 'light from the camera direction, following the camera' },
   { keys: ['+', '='], label: '+', action: 'brighter', help: 'brighter light' },
   { keys: ['-'], label: '−', action: 'dimmer', help: 'dimmer light' },
   { keys: ['g'], label: 'G', action: 'gloss', help: 'specular enhancement on / off' },

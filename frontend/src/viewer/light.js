@@ -12,8 +12,14 @@
 
 const DEG = Math.PI / 180;
 
-/** Largest polar angle the viewer lets a light reach (grazing, but still above the plane). */
-export const MAX_POLAR_DEG = 89;
+/**
+ * Largest polar angle the viewer lets a light reach: anywhere on the sphere (θ > 90° lights
+ * from behind the view plane, so the reverse and the edges of a whole tablet can be lit).
+ */
+export const MAX_POLAR_DEG = 180;
+
+/** Largest polar angle a drag on the light widget's disc (the front hemisphere) gives. */
+export const DISC_MAX_POLAR_DEG = 89;
 
 /** Polar angle of the raking presets: low enough to throw every wedge into relief. */
 export const RAKING_POLAR_DEG = 75;
@@ -21,13 +27,13 @@ export const RAKING_POLAR_DEG = 75;
 /**
  * Unit light direction in the scan frame.
  * @param {number} azimuthDeg φ in degrees (any real; taken modulo 360)
- * @param {number} polarDeg θ in degrees, in [0, 90]
+ * @param {number} polarDeg θ in degrees, in [0, 180] (over 90: from behind the view plane)
  * @returns {[number, number, number]} l, |l| = 1
  */
 export function lightDirection(azimuthDeg, polarDeg) {
   if (!Number.isFinite(azimuthDeg)) throw new RangeError(`azimuthDeg must be finite, got ${azimuthDeg}`);
-  if (!Number.isFinite(polarDeg) || polarDeg < 0 || polarDeg > 90) {
-    throw new RangeError(`polarDeg must lie in [0, 90], got ${polarDeg}`);
+  if (!Number.isFinite(polarDeg) || polarDeg < 0 || polarDeg > MAX_POLAR_DEG) {
+    throw new RangeError(`polarDeg must lie in [0, ${MAX_POLAR_DEG}], got ${polarDeg}`);
   }
   const phi = azimuthDeg * DEG;
   const theta = polarDeg * DEG;
@@ -72,7 +78,9 @@ export function clampPolar(polarDeg) {
  */
 export function discToAngles(dx, dy) {
   const r = Math.min(1, Math.hypot(dx, dy));
-  const polarDeg = clampPolar(Math.asin(r) / DEG);
+  // The disc is the hemisphere facing the camera: a drag reaches a grazing light at most
+  // (lights from behind come from the arrow keys or the "behind" control).
+  const polarDeg = Math.min(DISC_MAX_POLAR_DEG, Math.asin(r) / DEG);
   let azimuthDeg = r > 0 ? Math.atan2(dx, dy) / DEG : 0;
   if (azimuthDeg < 0) azimuthDeg += 360;
   return { azimuthDeg, polarDeg };
@@ -95,4 +103,43 @@ export const RAKING_PRESETS = Object.freeze(
 export function compassLabel(azimuthDeg) {
   const names = ['bottom', 'bottom-right', 'right', 'top-right', 'top', 'top-left', 'left', 'bottom-left'];
   return names[Math.round(wrapAzimuth(azimuthDeg) / 45) % 8];
+}
+
+/**
+ * A light given relative to a camera, in the world (scan or tablet) frame. The camera's own
+ * frame is the scan frame's convention seen through that camera: x = screen right, y = screen
+ * DOWN, z = the viewing direction, so the angles mean on any view what they mean on a scan
+ * (φ = 0: from the bottom of the screen; θ = 0: from the camera).
+ * @param {number} azimuthDeg φ relative to the camera
+ * @param {number} polarDeg θ relative to the camera, [0, 180]
+ * @param {{right: number[], up: number[], dir: number[]}} camera unit screen-right, screen-up
+ *   and viewing direction in the world frame
+ * @returns {[number, number, number]} unit light direction in the world frame
+ */
+export function cameraLightToWorld(azimuthDeg, polarDeg, { right, up, dir }) {
+  const [x, y, z] = lightDirection(azimuthDeg, polarDeg);
+  const out = [0, 1, 2].map((i) => right[i] * x - up[i] * y + dir[i] * z);
+  const n = Math.hypot(...out);
+  return out.map((v) => v / n);
+}
+
+/**
+ * The world-frame angles of a light given relative to the camera (e.g. a raking preset
+ * "from the left of the screen"), so that it can stay fixed to the tablet afterwards.
+ * @returns {{azimuthDeg: number, polarDeg: number}}
+ */
+export function cameraLightToWorldAngles(azimuthDeg, polarDeg, camera) {
+  return lightAngles(cameraLightToWorld(azimuthDeg, polarDeg, camera));
+}
+
+/**
+ * Inverse of {@link cameraLightToWorldAngles}: the angles, relative to a camera, of a light
+ * direction given in the world frame (what the light widget shows).
+ * @param {number[]} l light direction in the world frame (any length > 0)
+ * @param {{right: number[], up: number[], dir: number[]}} camera as for cameraLightToWorld
+ * @returns {{azimuthDeg: number, polarDeg: number}}
+ */
+export function worldLightToCameraAngles(l, { right, up, dir }) {
+  const d = (a) => a[0] * l[0] + a[1] * l[1] + a[2] * l[2];
+  return lightAngles([d(right), -d(up), d(dir)]);
 }

@@ -48,15 +48,19 @@ export function createLightWidget(canvas, { onInput }) {
     ctx.lineTo(c, c + r);
     ctx.stroke();
     const [dx, dy] = anglesToDisc(light.azimuthDeg, light.polarDeg);
+    // A light behind the view plane (θ > 90°) projects inside the disc too: drawn hollow.
+    const behind = light.polarDeg > 90;
     ctx.fillStyle = '#ffd54a';
-    ctx.strokeStyle = '#000';
+    ctx.strokeStyle = behind ? '#ffd54a' : '#000';
+    ctx.lineWidth = (behind ? 3 : 1) * dpr;
     ctx.beginPath();
     ctx.arc(c + dx * r, c + dy * r, 7 * dpr, 0, 2 * Math.PI);
-    ctx.fill();
+    if (!behind) ctx.fill();
     ctx.stroke();
     canvas.setAttribute(
       'aria-valuetext',
-      `azimuth ${light.azimuthDeg.toFixed(0)} degrees, polar ${light.polarDeg.toFixed(0)} degrees`,
+      `azimuth ${light.azimuthDeg.toFixed(0)} degrees, polar ${light.polarDeg.toFixed(0)} degrees` +
+        `${behind ? ', from behind' : ''}, relative to the view`,
     );
   }
 

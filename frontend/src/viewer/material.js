@@ -20,11 +20,13 @@ const vertexShader = /* glsl */ `
   out vec2 vUv;
   out vec3 vNormalW;
   out vec3 vPosW;
+  out vec3 vPosView;
   out float vHeightMm;
   void main() {
     vUv = uv;
     vec4 world = modelMatrix * vec4(position, 1.0);
     vPosW = world.xyz;
+    vPosView = (viewMatrix * world).xyz;
     vNormalW = normalize(mat3(modelMatrix) * normal);
     vHeightMm = -position.z; // h is measured toward the camera: z = -h
     gl_Position = projectionMatrix * viewMatrix * world;
@@ -38,6 +40,7 @@ const fragmentShader = /* glsl */ `
   in vec2 vUv;
   in vec3 vNormalW;
   in vec3 vPosW;
+  in vec3 vPosView;
   in float vHeightMm;
 
   uniform int uMode;
@@ -62,6 +65,22 @@ const fragmentShader = /* glsl */ `
   uniform vec3 uClay;
   uniform bool uOrtho;
   uniform vec3 uViewDirOrtho;     // direction from the scene toward an orthographic camera
+  uniform float uSeamDepthMm;     // > 0: faces overlap; the normal map's alpha is a weight
+  uniform mat4 uProjection;       // the camera's projection (for the seam's depth offset)
+
+  // Where faces of a whole tablet overlap they measured the same surface (to the registration's
+  // tens of µm), so depth testing alone would pick between them at random (z-fighting, seams
+  // along the rims). Each fragment is pushed away from the camera by (1 − w)·uSeamDepthMm,
+  // w its face's weight (alpha of its normal map: 0 at the mask's rim and on steep slopes,
+  // 1 well inside and facing the scan's camera), so in an overlap the face that measured the
+  // surface best is the one drawn, and the change of face happens where the weights cross.
+  void seamDepth(float w) {
+    vec3 p = vPosView;
+    float push = uSeamDepthMm * (1.0 - clamp(w, 0.0, 1.0));
+    if (uOrtho) p.z -= push; else p += normalize(p) * push;
+    vec4 clip = uProjection * vec4(p, 1.0);
+    gl_FragDepth = clamp(0.5 * clip.z / clip.w + 0.5, 0.0, 1.0);
+  }
 
   vec3 objectNormal(vec2 uv, float lod) {
     return textureLod(uNormalMap, uv, lod).xyz * 2.0 - 1.0;
@@ -105,6 +124,8 @@ const fragmentShader = /* glsl */ `
   }
 
   void main() {
+    if (uSeamDepthMm > 0.0 && uHasNormalMap) seamDepth(texture(uNormalMap, vUv).a);
+    else gl_FragDepth = gl_FragCoord.z;
     vec3 nObj = uHasNormalMap ? objectNormal(vUv, 0.0) : vNormalW;
     vec3 n = normalize(uObjectToWorld * nObj);
     if (!uHasNormalMap) n = normalize(vNormalW);
@@ -195,7 +216,84 @@ export function createRelightMaterial() {
       uClay: { value: new THREE.Vector3(CLAY_LINEAR.r, CLAY_LINEAR.g, CLAY_LINEAR.b) },
       uOrtho: { value: true },
       uViewDirOrtho: { value: new THREE.Vector3(0, 0, -1) },
+      uSeamDepthMm: { value: 0 },
+      uProjection: { value: new THREE.Matrix4() },
     },
     userData: { blank },
   });
+}
+
+/** Uniforms each face of a whole tablet has of its own; the others are shared with the base. */
+export const PART_UNIFORMS = Object.freeze([
+  'uObjectToWorld',
+  'uNormalMap',
+  'uHasNormalMap',
+  'uAlbedoMap',
+  'uHasAlbedo',
+  'uCurvatureMap',
+  'uCurvatureLod',
+  'uAccessMap',
+  'uHasTexture',
+  'uTexelSize',
+  'uSeamDepthMm',
+]);
+
+/**
+ * A material for one face of a whole tablet: the same shaders (so the same compiled program)
+ * with the light, mode and camera uniforms SHARED with `base` (the same objects: setting the
+ * light once lights every face) and the maps of {@link PART_UNIFORMS} its own.
+ * @param {THREE.ShaderMaterial} base from {@link createRelightMaterial}
+ * @param {{rotation: THREE.Matrix3, normals: THREE.Texture | null, albedo: THREE.Texture | null}} face
+ *   the face's scan → tablet rotation and maps (assets.js' `faces`)
+ * @param {{seamDepthMm: number}} options how far a fragment of weight 0 is pushed back
+ * @returns {THREE.ShaderMaterial}
+ */
+export function createPartMaterial(base, face, { seamDepthMm }) {
+  const uniforms = { ...base.uniforms };
+  for (const key of PART_UNIFORMS) {
+    const v = base.uniforms[key].value;
+    uniforms[key] = { value: v?.clone && !v.isTexture ? v.clone() : v };
+  }
+  const blank = base.userData.blank;
+  uniforms.uObjectToWorld.value.copy(face.rotation);
+  uniforms.uNormalMap.value = face.normals ?? blank;
+  uniforms.uHasNormalMap.value = Boolean(face.normals);
+  uniforms.uAlbedoMap.value = face.albedo ?? blank;
+  uniforms.uHasAlbedo.value = Boolean(face.albedo);
+  const img = face.normals?.image ?? face.albedo?.image;
+  uniforms.uTexelSize.value.set(img ? 1 / img.width : 1, img ? 1 / img.height : 1);
+  uniforms.uSeamDepthMm.value = seamDepthMm;
+  return new THREE.ShaderMaterial({
+    name: 'RelightPartMaterial',
+    glslVersion: THREE.GLSL3,
+    vertexShader: base.vertexShader,
+    fragmentShader: base.fragmentShader,
+    side: base.side,
+    uniforms,
+  });
+}
+
+/**
+ * The shading-mode maps of one face of a whole tablet: its own curvature and accessibility
+ * (quality maps are per scan and not carried over: `baseHas` for the shared one).
+ * @param {THREE.ShaderMaterial} m from {@link createPartMaterial}
+ * @param {object} face assets.js' face record (`curvature` layers, `accessibility` texture)
+ * @param {{mode: string, curvatureScale: number}} shading
+ * @param {boolean} baseHas whether the base material has the current mode's map
+ */
+export function applyPartShading(m, face, shading, baseHas) {
+  const u = m.uniforms;
+  let has = false;
+  if (shading.mode === 'curvature' && face.curvature?.length) {
+    const layer = face.curvature[Math.min(shading.curvatureScale, face.curvature.length - 1)];
+    u.uCurvatureMap.value = layer.texture;
+    u.uCurvatureLod.value = layer.lod;
+    has = true;
+  } else if (shading.mode === 'accessibility' && face.accessibility) {
+    u.uAccessMap.value = face.accessibility;
+    has = true;
+  } else if (shading.mode === 'quality') {
+    has = baseHas;
+  }
+  u.uHasTexture.value = has;
 }

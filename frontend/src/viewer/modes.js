@@ -35,6 +35,8 @@ const FILE_OF = {
 export function missingMessage(mode, assets, errors = {}) {
   const need = MODE_NEEDS[mode];
   const names = assets.names;
+  const faces = assets.faces ?? [];
+  if (faces.length) return missingOnFaces(mode, assets, errors);
   const present = {
     normals: Boolean(assets.normals),
     albedo: Boolean(assets.albedo),
@@ -49,6 +51,42 @@ export function missingMessage(mode, assets, errors = {}) {
   else if (LAZY_KINDS[mode] && assets[need] === null) notes.push(`Loading ${file}…`);
   if (!assets.normals && need !== 'normals') {
     notes.push('No normals.png: lit by the mesh normals, so fine wedges are smoothed away.');
+  }
+  return notes.length ? notes.join(' ') : null;
+}
+
+/**
+ * The same for a whole tablet ({@link missingMessage} with `assets.faces`: one entry per face,
+ * {name, assets: {normals, curvature, accessibility}, normals, albedo}): each face brings its own
+ * maps, so the notice names the faces that lack one.
+ */
+function missingOnFaces(mode, assets, errors) {
+  const need = MODE_NEEDS[mode];
+  const faces = assets.faces;
+  const has = {
+    normals: (f) => Boolean(f.normals),
+    albedo: (f) => Boolean(f.albedo),
+    curvature: (f) => f.assets.curvature.length > 0,
+    accessibility: (f) => Boolean(f.assets.accessibility),
+    quality: () => assets.names.quality.length > 0,
+  };
+  const notes = [];
+  const list = (fs) => fs.map((f) => f.name).join(', ');
+  if (need !== undefined) {
+    const lacking = faces.filter((f) => !has[need](f));
+    const file = FILE_OF[need];
+    if (lacking.length === faces.length) notes.push(`This model has no ${file}: the ${mode} view is not available.`);
+    else if (lacking.length) notes.push(`No ${file} for ${list(lacking)}: drawn in half-lit clay there.`);
+    else if (errors[need]) notes.push(`Could not load ${file}: ${errors[need]}`);
+    else if (LAZY_KINDS[mode] && assets[need] === null) notes.push(`Loading ${file}…`);
+  }
+  const flat = faces.filter((f) => !f.normals);
+  if (flat.length && need !== 'normals') {
+    notes.push(
+      flat.length === faces.length
+        ? 'No normals.png for the faces: lit by the mesh normals, so fine wedges are smoothed away.'
+        : `No normals.png for ${list(flat)}: lit by the mesh normals there.`,
+    );
   }
   return notes.length ? notes.join(' ') : null;
 }

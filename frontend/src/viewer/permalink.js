@@ -25,7 +25,9 @@ export function defaultViewState() {
   return {
     model: null,
     camera: null,
-    light: { azimuthDeg: 315, polarDeg: 45, intensity: 1, ambient: 0.15, gloss: 0 },
+    // follow: the angles are relative to the camera and the light turns with it (else fixed to
+    // the model, angles in its frame).
+    light: { azimuthDeg: 315, polarDeg: 45, intensity: 1, ambient: 0.15, gloss: 0, follow: false },
     shading: { mode: 'natural', curvatureScale: 0, exaggeration: 2, quality: null },
     hidden: [], // names of hidden parts (faces of a whole-tablet model); [] = all shown
   };
@@ -76,6 +78,7 @@ export function encodeViewState(state) {
   p.set('li', num(l.intensity));
   p.set('am', num(l.ambient));
   p.set('gl', num(l.gloss));
+  if (l.follow) p.set('lf', '1');
   const s = state.shading;
   p.set('mode', s.mode);
   if (s.curvatureScale) p.set('cs', String(s.curvatureScale));
@@ -137,10 +140,11 @@ export function decodeViewState(fragment) {
 
   const l = state.light;
   take('az', parseNumber(p.get('az'), -1e6, 1e6), (v) => (l.azimuthDeg = ((v % 360) + 360) % 360));
-  take('po', parseNumber(p.get('po'), 0, 89), (v) => (l.polarDeg = v));
+  take('po', parseNumber(p.get('po'), 0, 180), (v) => (l.polarDeg = v));
   take('li', parseNumber(p.get('li'), 0, 10), (v) => (l.intensity = v));
   take('am', parseNumber(p.get('am'), 0, 1), (v) => (l.ambient = v));
   take('gl', parseNumber(p.get('gl'), 0, 1), (v) => (l.gloss = v));
+  take('lf', ['0', '1'].includes(p.get('lf')) ? p.get('lf') === '1' : undefined, (v) => (l.follow = v));
 
   const s = state.shading;
   take('mode', SHADING_MODES.includes(p.get('mode')) ? p.get('mode') : undefined, (v) => (s.mode = v));

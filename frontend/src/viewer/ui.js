@@ -12,6 +12,7 @@ import { encodeViewState } from './permalink.js';
 import { niceStep, profileToCsv, sampleProfile } from './profile.js';
 import { parseNpy } from './npy.js';
 import { fetchBytes } from './assets.js';
+import { unavailableViewReason } from './views.js';
 
 const $ = (id) => document.getElementById(id);
 
@@ -23,7 +24,8 @@ const $ = (id) => document.getElementById(id);
 export function bindViewerUi(viewer, context) {
   const canvas = $('viewer');
   const widget = createLightWidget($('light-widget'), {
-    onInput: (angles) => viewer.setLight(angles),
+    // The disc is the hemisphere facing the camera: its angles are relative to the view.
+    onInput: (angles) => viewer.setLightFromView(angles),
   });
 
   // --- light ------------------------------------------------------------------------------
@@ -32,11 +34,12 @@ export function bindViewerUi(viewer, context) {
     const b = document.createElement('button');
     b.type = 'button';
     b.textContent = String(i + 1);
-    b.title = `Raking light from the ${p.label} (key ${i + 1})`;
+    b.title = `Raking light from the ${p.label} of the view (key ${i + 1})`;
     b.setAttribute('aria-label', b.title);
-    b.addEventListener('click', () => viewer.setLight({ azimuthDeg: p.azimuthDeg, polarDeg: p.polarDeg }));
+    b.addEventListener('click', () => viewer.setLightFromView({ azimuthDeg: p.azimuthDeg, polarDeg: p.polarDeg }));
     raking.append(b);
   });
+  $('light-follow').addEventListener('change', (e) => viewer.setLight({ follow: e.target.checked }));
   for (const id of ['intensity', 'ambient', 'gloss']) {
     $(id).addEventListener('input', (e) => viewer.setLight({ [id]: Number(e.target.value) }));
   }
@@ -175,11 +178,12 @@ export function bindViewerUi(viewer, context) {
         break;
       case 'raking': {
         const p = RAKING_PRESETS[Number(hit.key) - 1];
-        viewer.setLight({ azimuthDeg: p.azimuthDeg, polarDeg: p.polarDeg });
+        viewer.setLightFromView({ azimuthDeg: p.azimuthDeg, polarDeg: p.polarDeg });
         break;
       }
       case 'overhead':
-        viewer.setLight({ polarDeg: 0 });
+        // From the camera, and following it: the light stays where the eye is as the tablet turns.
+        viewer.setLight({ follow: true, azimuthDeg: 0, polarDeg: 0 });
         break;
       case 'brighter':
         viewer.setLight({ intensity: Math.min(2, l.intensity + 0.1) });
@@ -199,6 +203,7 @@ export function bindViewerUi(viewer, context) {
         }
         break;
       case 'view':
+        if (!viewer.views.includes(arg)) return; // a face model: the button says why
         viewer.setView(arg);
         break;
       case 'reset':
@@ -250,9 +255,18 @@ export function bindViewerUi(viewer, context) {
   function sync() {
     scheduled = false;
     const l = viewer.light;
-    widget.draw(l);
+    widget.draw(viewer.lightInView());
+    const behind = l.polarDeg > 90 ? ', from behind' : '';
     $('light-readout').textContent =
-      `azimuth ${l.azimuthDeg.toFixed(0)}° (from the ${compassLabel(l.azimuthDeg)}), polar ${l.polarDeg.toFixed(0)}°`;
+      `azimuth ${l.azimuthDeg.toFixed(0)}° (from the ${compassLabel(l.azimuthDeg)}), polar ${l.polarDeg.toFixed(0)}°` +
+      `${behind}, ${l.follow ? 'relative to the camera' : 'fixed to the tablet'}`;
+    $('light-follow').checked = Boolean(l.follow);
+    const views = viewer.views;
+    for (const b of document.querySelectorAll('[data-view]')) {
+      const ok = !viewer.model || views.includes(b.dataset.view);
+      b.disabled = !ok;
+      b.title = ok ? '' : unavailableViewReason(b.dataset.view, context.face?.() ?? null);
+    }
     $('intensity').value = String(l.intensity);
     $('ambient').value = String(l.ambient);
     $('gloss').value = String(l.gloss);
@@ -272,6 +286,7 @@ export function bindViewerUi(viewer, context) {
     canvas.dataset.mode = s.mode;
     canvas.dataset.azimuth = l.azimuthDeg.toFixed(3);
     canvas.dataset.polar = l.polarDeg.toFixed(3);
+    canvas.dataset.follow = String(Boolean(l.follow));
   }
   /** Colour ramps say what their colours mean: the quality map's range, curvature's sign. */
   function updateLegend(s) {

@@ -9,15 +9,29 @@
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { loadModelAssets } from './assets.js';
-import { lightDirection } from './light.js';
+import {
+  cameraLightToWorld,
+  cameraLightToWorldAngles,
+  lightAngles,
+  lightDirection,
+  worldLightToCameraAngles,
+} from './light.js';
 import { createMarks, pickPoint, projectPoint } from './marks.js';
 import { LAZY_KINDS, missingMessage as missingMessageOf } from './modes.js';
-import { createRelightMaterial, MODE_INDEX } from './material.js';
+import { applyPartShading, createPartMaterial, createRelightMaterial, MODE_INDEX } from './material.js';
 import { defaultViewState, SHADING_MODES } from './permalink.js';
 import { applyHiddenParts, createPartToggles, hiddenParts } from './parts.js';
-import { canonicalView } from './views.js';
+import { availableViews, canonicalView } from './views.js';
 
 const PERSPECTIVE_FOV_DEG = 30;
+
+/**
+ * How far (mm) the fragments of a whole tablet's face are pushed back where its weight is 0
+ * (material.js, `seamDepth`): more than the registration's misfit between two faces (tens of
+ * µm) and than a pixel's depth on a steep rim, less than the tablet's features (a wedge is
+ * ~0.5–1 mm deep, but a push only decides between surfaces within it of each other).
+ */
+const SEAM_DEPTH_MM = 0.4;
 
 /**
  * @param {HTMLCanvasElement} canvas
@@ -101,6 +115,8 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     const u = material.uniforms;
     u.uOrtho.value = camera.isOrthographicCamera;
     camera.getWorldDirection(u.uViewDirOrtho.value).negate();
+    u.uProjection.value.copy(camera.projectionMatrix);
+    if (state.light.follow) updateLightDirection();
     renderer.render(scene, camera);
   }
 
@@ -111,16 +127,64 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
 
   // --- light and shading ------------------------------------------------------------------
 
+  /** Unit screen-right, screen-up and viewing direction of the camera, in the world frame. */
+  function cameraBasis() {
+    camera.updateMatrixWorld();
+    const e = camera.matrixWorld.elements;
+    return { right: [e[0], e[1], e[2]], up: [e[4], e[5], e[6]], dir: [-e[8], -e[9], -e[10]] };
+  }
+
+  function updateLightDirection() {
+    const { azimuthDeg, polarDeg, follow } = state.light;
+    const l = follow ? cameraLightToWorld(azimuthDeg, polarDeg, cameraBasis()) : lightDirection(azimuthDeg, polarDeg);
+    material.uniforms.uLightDir.value.set(l[0], l[1], l[2]);
+  }
+
+  /**
+   * Set the light. `follow: true` makes the angles relative to the camera (the light turns with
+   * the view, like a lamp on the camera); false keeps it fixed to the model, angles in the
+   * model's frame. Switching keeps the light where it is at that moment.
+   */
   function setLight(light) {
-    Object.assign(state.light, light);
-    const l = lightDirection(state.light.azimuthDeg, state.light.polarDeg);
+    if (light.follow !== undefined && Boolean(light.follow) !== state.light.follow) {
+      const basis = cameraBasis();
+      const { azimuthDeg, polarDeg } = state.light;
+      const world = state.light.follow ? cameraLightToWorld(azimuthDeg, polarDeg, basis) : lightDirection(azimuthDeg, polarDeg);
+      // Express the current direction in the new frame (the call's own angles, if any, follow).
+      state.light.follow = Boolean(light.follow);
+      Object.assign(state.light, state.light.follow ? worldLightToCameraAngles(world, basis) : lightAngles(world));
+    }
+    const { follow, ...rest } = light;
+    Object.assign(state.light, rest);
+    updateLightDirection();
     const u = material.uniforms;
-    u.uLightDir.value.set(l[0], l[1], l[2]);
     u.uIntensity.value = state.light.intensity;
     u.uAmbient.value = state.light.ambient;
     u.uGloss.value = state.light.gloss;
     invalidate();
     onChange('light');
+  }
+
+  /**
+   * A light given relative to the view (the raking presets: "from the left of the screen"):
+   * when the light follows the camera these are its angles; when it is fixed to the model they
+   * are turned into the model's frame, so the face in view is lit from that side and the light
+   * stays on the tablet afterwards.
+   */
+  function setLightFromView({ azimuthDeg, polarDeg }) {
+    if (state.light.follow) setLight({ azimuthDeg, polarDeg });
+    else setLight(cameraLightToWorldAngles(azimuthDeg, polarDeg, cameraBasis()));
+  }
+
+  /**
+   * The light's angles relative to the current view (x = screen right, y = screen down,
+   * z = viewing direction): what the light widget shows, whichever frame the light is in.
+   * @returns {{azimuthDeg: number, polarDeg: number}}
+   */
+  function lightInView() {
+    const { azimuthDeg, polarDeg, follow } = state.light;
+    if (follow) return { azimuthDeg, polarDeg };
+    return worldLightToCameraAngles(lightDirection(azimuthDeg, polarDeg), cameraBasis());
   }
 
   function setShading(shading) {
@@ -181,6 +245,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       has = true;
     }
     u.uHasTexture.value = has;
+    for (const [i, m] of (model?.partMaterials ?? []).entries()) applyPartShading(m, a.faces[i], s, has);
   }
 
   /**
@@ -195,6 +260,9 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
 
   function setView(name) {
     if (!model) return;
+    if (!model.views.includes(name)) {
+      throw new RangeError(`this model has no ${name} view; it has ${model.views.join(', ')}`);
+    }
     const w = canvas.clientWidth || 1;
     const h = canvas.clientHeight || 1;
     const v = canonicalView(name, model.box, { aspect: w / h });
@@ -313,17 +381,21 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     }
     unloadModel();
     const { geometry } = loaded;
+
     geometry.computeBoundingBox();
     geometry.computeBoundingSphere();
     const multi = loaded.parts.length > 1;
-    const mesh = new THREE.Mesh(geometry, multi ? [material, hiddenMaterial] : material);
+    // A whole tablet: one material per face (its own maps and rotation, the light shared),
+    // then the invisible one for hidden faces.
+    const partMaterials = multi ? loaded.faces.map((face) => createPartMaterial(material, face, { seamDepthMm: SEAM_DEPTH_MM })) : [];
+    const mesh = new THREE.Mesh(geometry, multi ? [...partMaterials, hiddenMaterial] : material);
     scene.add(mesh);
     const bb = geometry.boundingBox;
     const box = { min: bb.min.toArray(), max: bb.max.toArray() };
     const parts = multi ? createPartToggles(loaded.parts) : null;
-    // mergeGeometries numbers the groups' materials 0, 1, 2…: map them onto shown/hidden.
-    if (parts) geometry.groups.forEach((g, i) => (g.materialIndex = parts.groupMaterialIndex(i)));
-    model = { mesh, assets: loaded, box, radius: geometry.boundingSphere.radius || 1, errors: {}, parts };
+    const views = availableViews(multi ? 'tablet' : 'face');
+    model = { mesh, assets: loaded, box, radius: geometry.boundingSphere.radius || 1, errors: {}, parts, partMaterials, views };
+    if (parts) assignGroupMaterials();
     const u = material.uniforms;
     u.uNormalMap.value = loaded.normals ?? material.userData.blank;
     u.uHasNormalMap.value = Boolean(loaded.normals);
@@ -342,6 +414,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
   function unloadModel() {
     if (!model) return;
     scene.remove(model.mesh);
+    for (const m of model.partMaterials) m.dispose();
     model.assets.dispose(); // geometry and every texture
     clearOverlay();
     const u = material.uniforms;
@@ -366,9 +439,17 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     if (model.parts.set(name, visible)) partsChanged();
   }
 
+  /** mergeGeometries numbers the groups 0, 1, 2…: group i is drawn with face i's material, or
+   * with the invisible one (last) when that face is hidden. */
+  function assignGroupMaterials() {
+    const { parts, partMaterials } = model;
+    model.mesh.geometry.groups.forEach((g, i) => {
+      g.materialIndex = parts.isVisible(parts.names[i]) ? i : partMaterials.length;
+    });
+  }
+
   function partsChanged() {
-    const parts = model.parts;
-    model.mesh.geometry.groups.forEach((g, i) => (g.materialIndex = parts.groupMaterialIndex(i)));
+    assignGroupMaterials();
     invalidate();
     onChange('parts');
   }
@@ -527,6 +608,8 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     load,
     unload: unloadModel,
     setLight,
+    setLightFromView,
+    lightInView,
     setShading,
     setView,
     setProjection,
@@ -548,6 +631,10 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     partNames,
     setPartVisible,
     dispose,
+    /** Canonical views this model has (a face model: its own side only, views.js). */
+    get views() {
+      return model ? [...model.views] : [];
+    },
     get model() {
       return model;
     },

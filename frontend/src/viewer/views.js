@@ -64,3 +64,26 @@ function cross(a, b) {
 function dot(a, b) {
   return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
 }
+
+/**
+ * The canonical views a model has. A whole tablet (the registration's model) has all six. A
+ * face model is one scan: a height field seen from its own camera, so only its scanned side
+ * exists; the view "reverse" would show that same side from behind, mirrored with its relief
+ * inverted (easily taken for the reverse), and the edge views show its rim sideways.
+ * @param {'face' | 'tablet'} kind
+ * @returns {string[]} names from VIEW_NAMES
+ */
+export function availableViews(kind) {
+  if (kind === 'tablet') return [...VIEW_NAMES];
+  if (kind === 'face') return ['obverse'];
+  throw new RangeError(`kind must be face or tablet, got ${kind}`);
+}
+
+/** Why a canonical view is not offered on a face model (the button's tooltip). */
+export function unavailableViewReason(name, face) {
+  const side = face ? `the ${face} scan` : 'one scan';
+  return (
+    `This model is ${side}: it has only the side its camera saw, so a ${name} view would show ` +
+    'that side from behind (mirrored, relief inverted). Open the whole tablet for the other sides.'
+  );
+}

@@ -1,7 +1,10 @@
 import { describe, expect, it } from 'vitest';
 import {
   anglesToDisc,
+  cameraLightToWorld,
+  cameraLightToWorldAngles,
   compassLabel,
+  worldLightToCameraAngles,
   discToAngles,
   lightAngles,
   lightDirection,
@@ -36,15 +39,20 @@ describe('lightDirection follows SCAN_BUNDLE.md', () => {
     const dot = (l) => l[0] * n[0] + l[1] * n[1] + l[2] * n[2];
     expect(dot(lightDirection(90, 75))).toBeGreaterThan(dot(lightDirection(270, 75)));
   });
-  it('rejects polar angles outside [0, 90] and non-finite azimuths', () => {
-    expect(() => lightDirection(0, 91)).toThrow(/polarDeg/);
+  it('reaches the whole sphere: θ = 180° lights from straight behind the view plane', () => {
+    close(lightDirection(0, 180), [0, 0, 1]);
+    close(lightDirection(90, 135), [Math.SQRT1_2, 0, Math.SQRT1_2]);
+  });
+  it('rejects polar angles outside [0, 180] and non-finite azimuths', () => {
+    expect(() => lightDirection(0, 181)).toThrow(/polarDeg/);
+    expect(() => lightDirection(0, -1)).toThrow(/polarDeg/);
     expect(() => lightDirection(Number.NaN, 10)).toThrow(/azimuthDeg/);
   });
 });
 
 describe('angles round-trip', () => {
   it('lightAngles inverts lightDirection', () => {
-    for (const [a, p] of [[0, 30], [45, 60], [90, 89], [200, 10], [359, 45]]) {
+    for (const [a, p] of [[0, 30], [45, 60], [90, 89], [200, 10], [359, 45], [120, 150], [300, 91]]) {
       const back = lightAngles(lightDirection(a, p));
       expect(back.azimuthDeg).toBeCloseTo(a, 9);
       expect(back.polarDeg).toBeCloseTo(p, 9);
@@ -72,5 +80,35 @@ describe('raking presets', () => {
     expect(compassLabel(90)).toBe('right');
     expect(compassLabel(180)).toBe('top');
     expect(compassLabel(-90)).toBe('left');
+  });
+});
+
+describe('light relative to the camera', () => {
+  // The reverse view of views.js: looking along −z, screen-up +y, so screen-right is +x.
+  const reverse = { right: [1, 0, 0], up: [0, 1, 0], dir: [0, 0, -1] };
+  it('on the obverse view it is the scan frame itself', () => {
+    const obverse = { right: [1, 0, 0], up: [0, -1, 0], dir: [0, 0, 1] };
+    for (const [a, p] of [[0, 75], [135, 40], [270, 120]]) close(cameraLightToWorld(a, p, obverse), lightDirection(a, p));
+  });
+  it('from the camera on the reverse view is a light from +z, behind the obverse', () => {
+    close(cameraLightToWorld(0, 0, reverse), [0, 0, 1]);
+    expect(cameraLightToWorldAngles(0, 0, reverse).polarDeg).toBeCloseTo(180, 9);
+  });
+  it('a raking light from the left of the screen on the reverse comes from −x', () => {
+    const l = cameraLightToWorld(270, 90, reverse); // φ = 270°: from the left of the screen
+    close(l, [-1, 0, 0]);
+    const a = cameraLightToWorldAngles(270, 75, reverse);
+    expect(a.polarDeg).toBeGreaterThan(90); // behind the obverse's view plane
+    close(lightDirection(a.azimuthDeg, a.polarDeg), cameraLightToWorld(270, 75, reverse));
+  });
+  it('worldLightToCameraAngles inverts cameraLightToWorld on any view', () => {
+    const top = { right: [1, 0, 0], up: [0, 0, 1], dir: [0, 1, 0] }; // views.js' top edge
+    for (const cam of [reverse, top]) {
+      for (const [a, p] of [[30, 20], [200, 75], [300, 150]]) {
+        const back = worldLightToCameraAngles(cameraLightToWorld(a, p, cam), cam);
+        expect(back.azimuthDeg).toBeCloseTo(a, 9);
+        expect(back.polarDeg).toBeCloseTo(p, 9);
+      }
+    }
   });
 });

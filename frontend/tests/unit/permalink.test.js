@@ -16,7 +16,14 @@ function sampleState(i) {
       up: [0, -1, 0],
       zoom: 1 + i / 4,
     },
-    light: { azimuthDeg: (37 * i) % 360, polarDeg: 10 + i, intensity: 0.5 + i / 10, ambient: 0.25, gloss: (i % 10) / 10 },
+    light: {
+      azimuthDeg: (37 * i) % 360,
+      polarDeg: 10 + 11 * i, // up to 175°: the light anywhere on the sphere
+      intensity: 0.5 + i / 10,
+      ambient: 0.25,
+      gloss: (i % 10) / 10,
+      follow: i % 2 === 1,
+    },
     shading: {
       mode: SHADING_MODES[i % SHADING_MODES.length],
       curvatureScale: i % 3,
@@ -52,8 +59,9 @@ describe('permalink state', () => {
   });
 
   it('names what it cannot use and keeps the rest', () => {
-    const { state, ignored } = decodeViewState('az=90&po=95&mode=psychedelic&li=2&pos=1,2&cam=o');
-    expect(ignored.sort()).toEqual(['camera', 'mode', 'po']);
+    const { state, ignored } = decodeViewState('az=90&po=195&mode=psychedelic&li=2&pos=1,2&cam=o&lf=yes');
+    expect(ignored.sort()).toEqual(['camera', 'lf', 'mode', 'po']);
+    expect(state.light.follow).toBe(false);
     expect(state.light.azimuthDeg).toBe(90);
     expect(state.light.polarDeg).toBe(defaultViewState().light.polarDeg);
     expect(state.light.intensity).toBe(2);

@@ -1,5 +1,5 @@
 import { describe, expect, it } from 'vitest';
-import { canonicalView, screenRight, VIEW_NAMES } from '../../src/viewer/views.js';
+import { availableViews, canonicalView, screenRight, unavailableViewReason, VIEW_NAMES } from '../../src/viewer/views.js';
 
 const box = { min: [0, 0, -8], max: [60, 40, 2] };
 
@@ -46,5 +46,16 @@ describe('edges sit around the obverse like the fat-cross layout', () => {
     expect(right('reverse')).toEqual([1, 0, 0]);
     expect(right('left')).toEqual([0, 0, -1]); // obverse (−z) on the right of the left edge
     expect(right('right')).toEqual([0, 0, 1]);
+  });
+});
+
+describe('available views', () => {
+  it('a whole tablet has all six, a face model only its scanned side', () => {
+    expect(availableViews('tablet')).toEqual(VIEW_NAMES);
+    expect(availableViews('face')).toEqual(['obverse']);
+    expect(() => availableViews('other')).toThrow(/kind/);
+  });
+  it('says why the reverse of a face model is not offered', () => {
+    expect(unavailableViewReason('reverse', 'obverse')).toMatch(/obverse scan.*mirrored.*whole tablet/);
   });
 });

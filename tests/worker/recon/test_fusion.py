@@ -193,40 +193,6 @@ def test_crease_error_is_zero_on_planes_and_large_at_a_v_groove():
     np.testing.assert_allclose(plane, 0, atol=1e-5)
 
 
-def _reference_fringes(period_px, sigma_px, *, rows=64, cols=320, supersample=8):
-    """Four phase steps of a vertical sinusoid on a flat target as a camera sees it: the
-    pattern averaged over each pixel (supersampled box), then blurred by a Gaussian PSF of
-    σ px, applied exactly in Fourier space (one frequency: a factor exp(−2π²σ²/P²))."""
-    x = (np.arange(cols * supersample) + 0.5) / supersample
-    frames = []
-    for step in range(4):
-        fringe = 1 + 0.8 * np.cos(2 * np.pi * x / period_px + step * np.pi / 2)
-        boxed = fringe.reshape(cols, supersample).mean(axis=1)
-        mean = boxed.mean()
-        blurred = mean + (boxed - mean) * np.exp(-2 * np.pi**2 * sigma_px**2 / period_px**2)
-        frames.append(np.tile(blurred, (rows, 1)))
-    return np.stack(frames).astype(np.float32)
-
-
-@pytest.mark.parametrize("sigma_px", [0.0, 0.5, 0.8])
-def test_camera_blur_is_measured_from_the_fringe_contrast(sigma_px):
-    # Noise-free, so the only errors are the model's: the box's sinc is divided out exactly
-    # and the pixel grid aliases nothing at periods ≥ 8 px; the median of B/A over the frame
-    # is the pattern's. 0.02 px is the floating-point and sampling slack.
-    from worker.recon.fringe import four_step_phase
-    from worker.recon.quality import camera_blur_sigma_px
-
-    periods = np.array([8.0, 10.0, 16.0, 20.0, 64.0])
-    mods = [
-        float(np.median(four_step_phase(_reference_fringes(p, sigma_px)).modulation))
-        for p in periods
-    ]
-    got = camera_blur_sigma_px(periods, np.array(mods), azimuth_deg=90.0)
-    assert got == pytest.approx(sigma_px, abs=0.02)
-    # One period alone cannot separate the pattern's contrast from the blur.
-    assert camera_blur_sigma_px(periods[:1], np.array(mods[:1]), azimuth_deg=90.0) == 0.0
-
-
 def _groove(rows=40, cols=80):
     """Pixel-averaged heights of a V-groove 300 µm wide and 60 µm deep along the columns."""
     ss = 16
@@ -553,3 +519,31 @@ def test_half_band_edge_slopes_halve_white_noise_and_keep_a_narrow_ridge():
     nan[10:20, 10:20] = np.nan
     ax, ay = transverse_mean_slopes(nan, nan)
     assert np.array_equal(np.isnan(ax), np.isnan(nan)) and np.isfinite(ax[9, 15])
+
+
+@pytest.mark.parametrize("blur_px", [0.0, 1.0, 2.0])
+def test_fringe_blur_is_measured_against_the_normals(blur_px):
+    # Grooves 3–6 px wide (wedges) on a tilted plane; exact normals, fringe heights blurred by
+    # a Gaussian of blur_px (light inside the clay) plus 0.5 µm noise, and a cliff the
+    # median must ignore. The measured σ is the candidate nearest the truth.
+    import cv2
+
+    from worker.recon.quality import fringe_blur_px
+
+    rng = np.random.default_rng(11)
+    rows, cols = 120, 160
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    h = 0.3 * S_UM * x / 10
+    for c0, w in ((20, 3), (50, 4), (80, 5), (115, 6)):
+        h -= 40 * np.clip(1 - np.abs(x - c0 - 0.3 * y) / w, 0, None)
+    h[:, 140:] += 500.0
+    gy, gx = np.gradient(h, S_UM)
+    n = np.stack([-gx, -gy, -np.ones_like(gx)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    f = h.astype(np.float32)
+    if blur_px > 0:
+        f = cv2.GaussianBlur(f, (0, 0), blur_px, borderType=cv2.BORDER_REFLECT)
+    f = f + rng.normal(0, 0.5, f.shape).astype(np.float32)
+    mask = np.ones((rows, cols), bool)
+    got = fringe_blur_px(f, n.astype(np.float32), mask, pixel_size_um=S_UM)
+    assert abs(got - blur_px) <= 0.26, got

@@ -266,3 +266,64 @@ def test_consensus_block_gives_the_plain_formulas_bit_for_bit(azimuths):
     for g, e in zip(got, expected, strict=True):
         assert g.dtype == e.dtype
         np.testing.assert_array_equal(g.view(np.uint8), e.view(np.uint8))
+
+
+def _guard_scene(seed):
+    """Rolling ground with a chip (a 400 µm deep pit) and a speckle of fused outliers."""
+    rng = np.random.default_rng(seed)
+    rows, cols = 60, 80
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float32)
+    truth = 200 * np.sin(x / 9) + 100 * np.cos(y / 7)
+    truth[20:32, 30:45] -= 400.0
+    fringe = truth + rng.normal(0, 3, truth.shape).astype(np.float32)
+    sigma = np.full(truth.shape, 3.0, np.float32)
+    fringe[22:30, 32:43] = np.nan  # the chip's floor: shadowed for every azimuth
+    fused = truth.copy()
+    speckle = rng.random(truth.shape) < 0.01
+    fused[speckle] += rng.choice([-1, 1], int(speckle.sum())) * rng.uniform(1e3, 1e5, speckle.sum())
+    fused[25, 35:38] = 120_000.0  # a needle inside the chip
+    fused[10, 10] = truth[10, 10] + 45.0  # within the floor: kept
+    return fused.astype(np.float32), fringe.astype(np.float32), sigma, truth
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_guard_leaves_no_unsupported_height(seed):
+    from worker.recon.height import GUARD_FRINGE, GUARD_NEIGHBOURHOOD, guard_heights
+
+    fused, fringe, sigma, truth = _guard_scene(seed)
+    mask = np.ones(fused.shape, bool)
+    g = guard_heights(fused, fringe, sigma, mask)
+    has_f = np.isfinite(fringe)
+    tol = np.maximum(5 * sigma, 50.0)
+    # The rule, pixel by pixel: near the fringes where they exist ...
+    assert np.all(np.abs(g.height_um - fringe)[has_f] <= tol[has_f] + 1e-3)
+    # ... and within the range of the fringe-bounded heights around the pit's floor.
+    lo, hi = (
+        np.nanmin(np.where(has_f, g.height_um, np.nan)[16:36, 26:49]),
+        np.nanmax(np.where(has_f, g.height_um, np.nan)[16:36, 26:49]),
+    )
+    floor = ~has_f
+    assert np.all((g.height_um[floor] >= lo - 1e-3) & (g.height_um[floor] <= hi + 1e-3))
+    assert np.all(g.flag[25, 35:38] == GUARD_NEIGHBOURHOOD)
+    assert g.flag[10, 10] == 0 and g.height_um[10, 10] == fused[10, 10]
+    # Every outlier flagged; nothing else changed.
+    bad = np.abs(fused - truth) > 1e3
+    assert np.all(g.flag[bad] > 0)
+    np.testing.assert_array_equal(g.height_um[g.flag == 0], fused[g.flag == 0])
+    assert set(np.unique(g.flag)) <= {0, GUARD_FRINGE, GUARD_NEIGHBOURHOOD}
+    # Replaced pixels come from their neighbourhood: near the truth, not at the bound.
+    assert np.median(np.abs(g.height_um - truth)[g.flag > 0]) < 30.0
+
+
+def test_valid_fringe_excludes_rim_single_azimuth_and_lone_outliers():
+    from worker.recon.height import valid_fringe
+
+    f = np.zeros((20, 20), np.float32)
+    f[10, 10] = 5_000.0  # a lone wrong order
+    used = np.full(f.shape, 3, np.int16)
+    used[5, 5] = 1
+    mask = np.ones(f.shape, bool)
+    v = valid_fringe(f, mask, azimuths_used=used, pixel_size_um=50.0)
+    assert not v[10, 10] and not v[5, 5]
+    assert not v[:2].any() and not v[:, -2:].any()  # the rim
+    assert v[2:-2, 2:-2].sum() == 16 * 16 - 2

@@ -85,3 +85,45 @@ def test_morphology_is_scipy_ndimage_s():
         np.testing.assert_array_equal(_fill_holes(a), ndimage.binary_fill_holes(a))
     for a in (np.ones((5, 6), bool), np.zeros((5, 6), bool)):
         np.testing.assert_array_equal(_fill_holes(a), a)
+
+
+def test_a_support_as_bright_as_the_clay_is_told_apart_by_height():
+    # Dark clay (ρ 0.25) on a light V-block (ρ 0.28) 12 mm below it: brightness alone
+    # splits noise; the heights show the support around the tablet.
+    from worker.recon.mask import tablet_mask
+
+    rng = np.random.default_rng(4)
+    rows, cols = 96, 128
+    tablet = np.zeros((rows, cols), bool)
+    tablet[20:76, 24:104] = True
+    albedo = np.where(tablet, 0.25, 0.28) + rng.normal(0, 0.02, (rows, cols))
+    y, x = np.mgrid[0:rows, 0:cols]
+    height = np.where(tablet, 5700 + 300 * np.sin(x / 9.0), -6600 - 20 * np.abs(x - 64))
+    height = height + rng.normal(0, 3, (rows, cols))
+    ones = np.ones((rows, cols), bool)
+    got = tablet_mask(albedo.astype(np.float32), has_normal=ones, has_height=ones, height_um=height)
+    assert got[20:76, 24:104][2:-2, 2:-2].all()  # the tablet less its eroded rim
+    assert not got[~tablet].any()  # none of the support
+
+
+def test_the_height_split_leaves_a_brightness_mask_that_agrees():
+    # Clay on black velvet (few fringe heights on it): brightness decides, as before.
+    from worker.recon.mask import tablet_mask
+
+    rng = np.random.default_rng(5)
+    rows, cols = 96, 128
+    tablet = np.zeros((rows, cols), bool)
+    tablet[20:76, 24:104] = True
+    albedo = np.where(tablet, 0.3, 0.02) + rng.normal(0, 0.005, (rows, cols))
+    height = np.where(tablet, 800 + 600 * np.cos(np.mgrid[0:rows, 0:cols][1] / 20.0), np.nan)
+    ones = np.ones((rows, cols), bool)
+    with_h = tablet_mask(
+        albedo.astype(np.float32),
+        has_normal=ones,
+        has_height=np.isfinite(height),
+        height_um=height,
+    )
+    without = tablet_mask(
+        albedo.astype(np.float32), has_normal=ones, has_height=np.isfinite(height)
+    )
+    np.testing.assert_array_equal(with_h, without)

@@ -172,7 +172,7 @@ def test_refine_gives_the_area_mean_at_a_cliff(angle_deg, offset_px):
     normals = _normals(size, slope)
     mask = np.ones((size, size), bool)
     out, frac, _, _ = refine_cliff_heights(
-        h, h, normals, mask, samples, pixel_size_um=S_UM, blur_sigma_px=0.0
+        h, h, normals, mask, samples, pixel_size_um=S_UM, blur_sigma_px=0.0, sample="area"
     )
     truth = _box(h_sub, size)
     f_true = _box(upper.astype(float), size)
@@ -194,6 +194,17 @@ def test_refine_gives_the_area_mean_at_a_cliff(angle_deg, offset_px):
     # Pixels the wall does not touch keep (within the same tolerance) their height.
     away = ~straddle & inner & np.isfinite(frac)
     assert np.abs(out - truth)[away].max() <= tol_f * cliff
+    # A point sample (SCAN_BUNDLE.md): the side holding the pixel's centre, which a straight
+    # wall leaves on the side with the larger share; clear shares pick the true side.
+    point, pfrac, up, low = refine_cliff_heights(
+        h, h, normals, mask, samples, pixel_size_um=S_UM, blur_sigma_px=0.0, sample="point"
+    )
+    np.testing.assert_array_equal(pfrac[straddle], frac[straddle])
+    expected = np.where(frac >= 0.5, up, low)
+    np.testing.assert_array_equal(point[straddle], expected[straddle])
+    clear = straddle & (np.abs(f_true - 0.5) > tol_f)
+    side_true = np.where(f_true > 0.5, up, low)
+    np.testing.assert_array_equal(point[clear], side_true[clear])
 
 
 def test_refine_with_camera_blur():
@@ -218,7 +229,7 @@ def test_refine_with_camera_blur():
     normals = _normals(size, slope)
     mask = np.ones((size, size), bool)
     out, frac, _, _ = refine_cliff_heights(
-        h, h, normals, mask, samples, pixel_size_um=S_UM, blur_sigma_px=blur
+        h, h, normals, mask, samples, pixel_size_um=S_UM, blur_sigma_px=blur, sample="area"
     )
     f_true = _box(upper.astype(float), size)
     inner = np.zeros((size, size), bool)
@@ -339,3 +350,32 @@ def test_samples_with_one_period_change_nothing():
     )
     assert np.array_equal(out, h)
     assert np.isnan(frac).all()
+
+
+def test_check_refinement_stands_down_where_a_side_is_not_measured():
+    # Two terraces 600 µm apart; a refinement puts the wall's column on either side (kept)
+    # and one pixel 40 mm up (a side extrapolated through a grazing normal): that pixel and
+    # its changed neighbours get their input back, the rest of the wall keeps its refinement.
+    from worker.recon.walls import check_refinement
+
+    size = 24
+    fringe = np.zeros((size, size), np.float32)
+    fringe[:, 12:] = 600.0
+    before = fringe.copy()
+    before[:, 11:13] = 300.0  # the fusion's smeared wall
+    after = before.copy()
+    after[:, 11] = 0.0
+    after[:, 12] = 600.0
+    after[5, 12] = 40_000.0
+    mask = np.ones((size, size), bool)
+    got = check_refinement(before, after, fringe, mask)
+    assert got.height_um[5, 12] == 300.0
+    assert np.all(got.height_um[4:7, 11:13] == 300.0)  # the spoilt region stood down
+    assert got.stood_down == 1 and got.stood_down_pixels == 6
+    keep = np.ones((size, size), bool)
+    keep[4:7, 11:13] = False
+    np.testing.assert_array_equal(got.height_um[keep], after[keep])
+    assert got.acted.sum() == 2 * size - 6
+    # Nothing changed: nothing to check.
+    same = check_refinement(before, before, fringe, mask)
+    assert same.regions == 0 and not same.acted.any()

@@ -78,6 +78,9 @@ def test_register_job_stores_a_tablet_model_with_plates(env, tmp_path):
             "fatcross/P000001_fatcross.pdf",
         ):
             assert name in model.assets, name
+        # Every face keeps its full-resolution normals (with blending weights) for the viewer.
+        for d in dirs:
+            assert f"faces/sim-0-{d.name}/normals.png" in model.assets, sorted(model.assets)
         assert model.report["pairs"]
 
 

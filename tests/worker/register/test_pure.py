@@ -152,3 +152,44 @@ def test_render_orthographic_and_fatcross_layout():
     assert with_bar.shape[0] > plate.shape[0]
     with pytest.raises(ValueError, match="missing"):
         compose_fatcross({"o": imgs["o"]}, gap_px=1)
+
+
+def test_face_normal_map_weight_falls_to_zero_at_the_rim_and_with_tilt():
+    from worker.register.merge import face_normal_map
+
+    mask = np.zeros((40, 50), bool)
+    mask[5:35, 5:45] = True
+    n = np.zeros((40, 50, 3))
+    n[..., 2] = -1.0
+    tilt = np.radians(60)
+    n[20:, 25:] = (np.sin(tilt), 0.0, -np.cos(tilt))
+    rgba = face_normal_map(n, mask, pixel_size_um=100.0, feather_mm=0.5)  # feather 5 px
+    assert rgba.shape == (40, 50, 4) and rgba.dtype == np.uint8
+    np.testing.assert_array_equal(rgba[12, 12, :3], [128, 128, 0])  # (0, 0, -1)
+    assert rgba[12, 12, 3] == 255  # 7 px inside, facing the camera
+    assert rgba[5, 20, 3] == 51  # on the rim row: 1 px from off-mask, 1/5
+    assert rgba[0, 0, 3] == 0  # off the mask
+    # cos² 60° = 1/4 on the tilted patch, well inside the mask.
+    assert abs(int(rgba[27, 32, 3]) - 64) <= 1
+
+
+def test_grid_mesh_carries_the_image_grid_as_texture_coordinates():
+    import pygltflib
+    import trimesh
+
+    from worker.register.merge import scene_glb
+
+    h = np.zeros((10, 12))
+    albedo = np.full((10, 12, 3), 90, np.uint8)
+    m = grid_mesh(h, np.ones((10, 12), bool), albedo, pixel_size_um=100.0)
+    glb = scene_glb({"obverse": m}, {"obverse": np.eye(4)})
+    gltf = pygltflib.GLTF2.load_from_bytes(glb)
+    prim = gltf.meshes[0].primitives[0]
+    assert prim.attributes.TEXCOORD_0 is not None
+    assert gltf.materials[prim.material].pbrMetallicRoughness.baseColorTexture is not None
+    loaded = trimesh.load(trimesh.util.wrap_as_stream(glb), file_type="glb", force="mesh")
+    uv = loaded.visual.uv
+    # Pixel (r, c) at u = (c + 0.5)/W, v = (r + 0.5)/H (glTF's v down, trimesh's v up).
+    np.testing.assert_allclose(uv[:, 0].min(), 0.5 / 12, atol=1e-6)
+    np.testing.assert_allclose(uv[:, 0].max(), 11.5 / 12, atol=1e-6)
+    np.testing.assert_allclose(1 - uv[:, 1].max(), 0.5 / 10, atol=1e-6)

@@ -1,0 +1,71 @@
+"""The whole tablet for the viewer (`worker.register.run.whole_tablet_model`): one glTF node
+per face with its image grid and albedo, and each face's full-resolution normals with blending
+weights, from the simulator's ground truth of six faces at their true poses."""
+
+from __future__ import annotations
+
+import io
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pygltflib
+import pytest
+from PIL import Image
+
+from worker.register.io import face_asset_dir, load_model_dir
+from worker.register.run import whole_tablet_model
+
+from .synthetic import write_gt_model_dirs
+
+FRONTEND = Path(__file__).resolve().parents[3] / "frontend"
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    paths, truths = write_gt_model_dirs(tmp_path_factory.mktemp("gt"), size=(64, 52))
+    loaded = [load_model_dir(p) for p in paths]
+    return loaded, whole_tablet_model(loaded, truths)
+
+
+def test_every_face_node_has_its_image_grid_and_albedo(model):
+    loaded, files = model
+    gltf = pygltflib.GLTF2.load_from_bytes(files["model.glb"])
+    nodes = {n.name: n for n in gltf.nodes if n.mesh is not None}
+    assert set(nodes) == {c.label for c, _ in loaded}
+    for node in nodes.values():
+        prim = gltf.meshes[node.mesh].primitives[0]
+        assert prim.attributes.TEXCOORD_0 is not None, node.name
+        material = gltf.materials[prim.material]
+        assert material.pbrMetallicRoughness.baseColorTexture is not None, node.name
+
+
+def test_every_face_keeps_its_full_resolution_normals_and_weights(model):
+    loaded, files = model
+    for cloud, raw in loaded:
+        name = f"{face_asset_dir(cloud.label)}/normals.png"
+        rgba = np.asarray(Image.open(io.BytesIO(files[name])))
+        mask = raw["mask"] & np.all(np.isfinite(raw["normals"]), axis=2)
+        assert rgba.shape == (*mask.shape, 4)
+        decoded = rgba[..., :3] / 127.5 - 1.0
+        err = np.abs(decoded[mask] - raw["normals"][mask]).max()
+        assert err < 1 / 127.5 + 1e-6, (cloud.label, err)  # 8-bit quantisation only
+        weight = rgba[..., 3]
+        assert weight[~mask].max() == 0
+        assert weight[mask].max() > 200  # the face's own centre: facing its camera, far in
+
+
+def test_khronos_validator_reports_no_error_on_the_whole_tablet(model, tmp_path):
+    _, files = model
+    (tmp_path / "tablet.glb").write_bytes(files["model.glb"])
+    run = subprocess.run(
+        ["node", str(FRONTEND / "scripts" / "validate-gltf.mjs"), str(tmp_path / "tablet.glb")],
+        cwd=FRONTEND,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert run.stdout, run.stderr
+    (report,) = json.loads(run.stdout)
+    assert report["issues"]["numErrors"] == 0, report["issues"]["messages"][:5]
