@@ -104,11 +104,14 @@ class LocalLibrary:
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
-    def cli(self, *args: str, check: bool = True) -> subprocess.CompletedProcess:
+    def cli(
+        self, *args: str, check: bool = True, stdin: str | None = None
+    ) -> subprocess.CompletedProcess:
         result = subprocess.run(
             [sys.executable, "-m", "backend.cli", *args],
             env=self.env,
             cwd=self.data_dir,
+            input=stdin,
             capture_output=True,
             text=True,
             timeout=300,
@@ -397,8 +400,8 @@ def run_demo(args: argparse.Namespace) -> int:
             "staff",
             "--institution",
             "Demo",
-            "--password",
-            staff_password,
+            "--password-stdin",
+            stdin=staff_password + "\n",
         )
 
         progress.say("starting the library service and a reconstruction worker (embedded broker)")
