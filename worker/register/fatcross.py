@@ -41,6 +41,8 @@ __all__ = [
     "add_scale_bar",
     "compose_fatcross",
     "curvature_shading",
+    "detail_curvature_per_um",
+    "encode_curvature",
     "fatcross_layout",
     "mean_curvature_from_normals_per_um",
     "natural_colour",
@@ -277,22 +279,21 @@ def mean_curvature_from_normals_per_um(
     return np.where(mask, 0.5 * div, np.nan)
 
 
-def curvature_shading(
+def detail_curvature_per_um(
     render: dict[str, np.ndarray],
     *,
     px_per_mm: float,
     detail_scale_um: float | None = None,
     shape_scale_mm: float = 1.5,
-) -> np.ndarray:
-    """(H, W, 3) uint8 grey on black: mean curvature of the surface detail, ridges light,
-    troughs dark, grey 128 = the tablet's own shape.
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mean curvature (1/µm) of the surface detail and the pixels away from the rim.
 
     Computed from the rendered normals (the scans' own where they saw the surface, so the
     merged mesh's facets do not show): H(n − G_σ∗n) with σ = ``shape_scale_mm`` (a band-pass:
     normalized convolution inside the mask, the tablet's overall curvature removed) at
     ``detail_scale_um`` (default 1.5 pixels), :func:`mean_curvature_from_normals_per_um`.
-    The display range is the 98th percentile of |H| away from the rim (where the view grazes
-    the surface and the curvature is the silhouette's, not a sign's)."""
+    ``inner``: the mask eroded by 3 detail scales (at the rim the view grazes the surface and
+    the curvature is the silhouette's, not a sign's). NaN off the mask."""
     pixel_um = 1000.0 / px_per_mm
     n = render["normals"]
     mask = render["mask"] & np.all(np.isfinite(n), axis=-1)
@@ -306,10 +307,34 @@ def curvature_shading(
     scale_um = 1.5 * pixel_um if detail_scale_um is None else detail_scale_um
     k = mean_curvature_from_normals_per_um(detail, mask, pixel_size_um=pixel_um, scale_um=scale_um)
     rim_px = max(2, int(round(3 * scale_um / pixel_um)))
-    inner = ndimage.binary_erosion(mask, iterations=rim_px)
-    grey = encode_signed8(k, scale=robust_scale(k[inner] if inner.any() else k))
-    grey[~mask] = 0
+    return k, ndimage.binary_erosion(mask, iterations=rim_px)
+
+
+def encode_curvature(k_per_um: np.ndarray, *, scale_per_um: float) -> np.ndarray:
+    """(H, W, 3) uint8 grey on black: 128 + 127·tanh(H/scale), ridges light; NaN → black."""
+    grey = encode_signed8(k_per_um, scale=scale_per_um)
+    grey[~np.isfinite(k_per_um)] = 0
     return np.repeat(grey[..., None], 3, axis=-1)
+
+
+def curvature_shading(
+    render: dict[str, np.ndarray],
+    *,
+    px_per_mm: float,
+    detail_scale_um: float | None = None,
+    shape_scale_mm: float = 1.5,
+) -> np.ndarray:
+    """(H, W, 3) uint8 grey on black: :func:`detail_curvature_per_um` shown on its own display
+    range (the 98th percentile of |H| away from the rim); grey 128 = the tablet's own shape,
+    ridges light, troughs dark. A plate uses one range for all its views instead
+    (:func:`worker.register.plates.fatcross_files`)."""
+    k, inner = detail_curvature_per_um(
+        render,
+        px_per_mm=px_per_mm,
+        detail_scale_um=detail_scale_um,
+        shape_scale_mm=shape_scale_mm,
+    )
+    return encode_curvature(k, scale_per_um=robust_scale(k[inner] if inner.any() else k))
 
 
 def reduce_image(image: np.ndarray, size_wh: tuple[int, int]) -> np.ndarray:

@@ -16,11 +16,13 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 from PIL.PngImagePlugin import PngInfo
 
+from worker.recon.shading_maps import robust_scale
 from worker.register.fatcross import (
     FATCROSS_VIEWS,
     RAKING_POLAR_DEG,
     FaceMaps,
-    curvature_shading,
+    detail_curvature_per_um,
+    encode_curvature,
     fatcross_layout,
     natural_colour,
     reduce_image,
@@ -279,7 +281,7 @@ def fatcross_files(
         [f.pixel_size_um for f in faces],
         np.ptp(np.asarray(vertices_mm, float), axis=0),
     )
-    natural, curvature, from_scans = {}, {}, {}
+    natural, curvature, from_scans, inner_k = {}, {}, {}, []
     for suffix, rot in FATCROSS_VIEWS.items():
         r = render_orthographic(
             vertices_mm,
@@ -291,9 +293,14 @@ def fatcross_files(
             faces=faces,
         )
         natural[suffix] = natural_colour(r)
-        curvature[suffix] = curvature_shading(r, px_per_mm=render_res)
+        curvature[suffix], inner = detail_curvature_per_um(r, px_per_mm=render_res)
+        inner_k.append(curvature[suffix][inner])
         hit = r["mask"].sum()
         from_scans[suffix] = round(float(r["from_scans"].sum() / hit), 3) if hit else 0.0
+    # One display range for every view, so that a face with few signs does not have its
+    # faint texture stretched to full contrast (and the faces can be compared).
+    k_scale = robust_scale(np.concatenate(inner_k)) if inner_k else 1.0
+    curvature = {k: encode_curvature(v, scale_per_um=k_scale) for k, v in curvature.items()}
     files: dict[str, bytes] = {}
     plates = []
     for kind, images in (("natural", natural), ("curvature", curvature)):
@@ -312,6 +319,7 @@ def fatcross_files(
         "px_per_mm": round(px_per_mm, 4),
         "dpi": round(px_per_mm * 25.4, 1),
         "rendered_px_per_mm": round(render_res, 4),
+        "curvature_display_per_mm": round(k_scale * 1000.0, 4),
         "light": {"polar_deg": RAKING_POLAR_DEG, "from": "upper left"},
         "normals_from_scans": from_scans,
         "designation": info.designation,

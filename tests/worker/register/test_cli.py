@@ -52,6 +52,7 @@ def test_cli_writes_transforms_meshes_plates_and_report(model_dirs, tmp_path, ca
     assert (out / "fatcross" / "P1_fatcross.pdf").read_bytes().startswith(b"%PDF")
     # The scans' own normals shade most of every view.
     assert min(report["fatcross"]["normals_from_scans"].values()) > 0.5
+    assert report["fatcross"]["curvature_display_per_mm"] > 0  # one range for the plate
     with Image.open(io.BytesIO((out / "fatcross" / "P1_fatcross_natural.png").read_bytes())) as im:
         assert im.text["px_per_mm"] == f"{150 / 25.4:.4f}"
         assert im.text["Title"].startswith("P1") and im.text["Simulated"] == "false"

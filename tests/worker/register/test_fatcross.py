@@ -17,6 +17,8 @@ from worker.register.fatcross import (
     FATCROSS_VIEWS,
     FaceMaps,
     curvature_shading,
+    detail_curvature_per_um,
+    encode_curvature,
     fatcross_layout,
     mean_curvature_from_normals_per_um,
     natural_colour,
@@ -98,6 +100,24 @@ def test_curvature_removes_the_tablets_overall_shape():
     k = mean_curvature_per_um(render["height_um"], pixel_size_um=1000 / PX, scale_um=75.0)
     plain = encode_signed8(k, scale=robust_scale(k)).astype(float)
     assert abs(np.median(plain[between]) - 128) >= 6
+
+
+def test_one_display_range_keeps_a_face_without_signs_grey():
+    signs, _ = _wedged_surface()
+    rows, cols = signs["mask"].shape
+    x = (np.arange(cols) + 0.5) / PX
+    h = 0.5 * np.sin(2 * np.pi * x / 0.4)[None, :].repeat(rows, 0)  # 0.5 µm ripples, no sign
+    hy, hx = np.gradient(h, 1000.0 / PX)
+    n = np.stack([-hx, -hy, -np.ones_like(h)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    faint = {**signs, "normals": n, "height_um": h}
+    k_s, in_s = detail_curvature_per_um(signs, px_per_mm=PX)
+    k_f, in_f = detail_curvature_per_um(faint, px_per_mm=PX)
+    pooled = robust_scale(np.concatenate([k_s[in_s], k_f[in_f]]))
+    shared = encode_curvature(k_f, scale_per_um=pooled)[..., 0].astype(float)
+    alone = curvature_shading(faint, px_per_mm=PX)[..., 0].astype(float)
+    assert np.percentile(np.abs(shared[in_f] - 128), 95) < 10
+    assert np.percentile(np.abs(alone[in_f] - 128), 95) > 60  # its own range stretches it
 
 
 def test_curvature_from_normals_of_a_sphere_cap_is_one_over_r():
