@@ -8,7 +8,7 @@ setup:
 	@bash scripts/setup.sh
 
 demo: setup
-	@$(PY) -m worker.demo
+	@$(PY) -m worker.demo $(if $(PORT),--port $(PORT))
 
 lint: setup
 	@.venv/bin/ruff check backend worker rig_agent tests bench

@@ -20,7 +20,7 @@ command -v psql >/dev/null || apt_wanted+=(postgresql-client)
 dpkg -s libllvm19 >/dev/null 2>&1 || apt_wanted+=(libllvm19)
 if [ ${#apt_wanted[@]} -gt 0 ]; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
-    log "installing Debian packages: ${apt_wanted[*]}"
+    log "installing Debian packages (apt-get): ${apt_wanted[*]}"
     export DEBIAN_FRONTEND=noninteractive
     apt-get update -qq
     apt-get install -y -qq --no-install-recommends "${apt_wanted[@]}" >/dev/null
@@ -37,7 +37,18 @@ if [ ! -x .venv/bin/python ]; then
 fi
 stamp=.venv/.installed-$(sha256sum pyproject.toml | cut -c1-16)
 if [ ! -f "$stamp" ]; then
-  log "installing Python packages (pyproject.toml changed or first run)"
+  log "installing Python packages into .venv (pyproject.toml changed or first run):"
+  # Say what: every pinned requirement of pyproject.toml, by group.
+  .venv/bin/python - <<'PYEOF'
+import tomllib
+
+project = tomllib.load(open("pyproject.toml", "rb"))["project"]
+groups = {"core": project.get("dependencies", []), **project.get("optional-dependencies", {})}
+for name, reqs in groups.items():
+    named = [r for r in reqs if not r.startswith(project["name"])]
+    if named:
+        print(f"          {name}: {', '.join(named)}")
+PYEOF
   # This machine's pip.conf names optional local mirrors that may be absent: hide that noise only.
   .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade "pip==25.3" \
     2> >(grep -v "is neither a file nor a directory" >&2)
@@ -51,7 +62,8 @@ fi
 if [ -f frontend/package.json ]; then
   lockhash=$(cat frontend/package.json frontend/package-lock.json 2>/dev/null | sha256sum | cut -c1-16)
   if [ ! -f "frontend/node_modules/.installed-$lockhash" ]; then
-    log "installing npm packages"
+    log "installing npm packages into frontend/node_modules:"
+    .venv/bin/python -c 'import json; p = json.load(open("frontend/package.json")); [print(f"          {k}: " + ", ".join(f"{n}@{v}" for n, v in p.get(k, {}).items())) for k in ("dependencies", "devDependencies") if p.get(k)]'
     if [ -f frontend/package-lock.json ]; then
       (cd frontend && npm ci --no-audit --no-fund --loglevel=error >/dev/null)
     else

@@ -4,11 +4,16 @@
 2. the real ORACC catalogue imported (``../shared/data/oracc-catalogue`` next to the repo, or
    ``HAMMURABI_DEMO_CATALOGUE``; without it a one-record catalogue, said clearly);
 3. ``hammurabi serve`` and ``hammurabi worker`` started as real processes;
-4. a complete tablet (all six faces) simulated (``worker.simulate``, quick preset) and each
-   face uploaded through the API by the rig agent's spool and upload client, like a rig;
-5. the reconstruction followed on the job rows (a progress line per face);
-6. the URL of the tablet in the viewer printed; serving until Ctrl-C
-   (``--exit-when-ready``: stop once the models are ready, for tests).
+4. the six faces of a tablet simulated (``worker.simulate``, quick preset) one after the
+   other at the paper's resolution, 26.8 µm per pixel (1280 × 1024 px over the paper's
+   34.3 × 27.4 mm field; ``--width/--height`` choose a coarser one, e.g. for CI), each bundle
+   marked ``scan.tablet.simulated = "true"`` (free metadata, SCAN_BUNDLE.md) and uploaded as
+   soon as it is simulated through the API by the rig agent's spool and upload client, like
+   a rig, so that the worker reconstructs it while the next face is simulated;
+5. the reconstruction followed on the job rows (a progress line per face), then the
+   worker's automatic registration of all six faces (whole tablet, fatcross plates);
+6. the library's address, the whole tablet's link and a staff login printed; serving until
+   Ctrl-C (``--exit-when-ready``: stop once the models are ready, for tests).
 
 ``LocalLibrary`` (start/stop the service and workers, the CLI, an API token) is reused by
 the system tests and ``bench/queue.py``.
@@ -36,7 +41,9 @@ import httpx
 
 REPO = Path(__file__).resolve().parent.parent
 CATALOGUE_FILE = "oracc_catalogue_merged.csv"
-DEMO_FACES = ("obverse", "reverse", "top", "bottom", "left", "right")
+# Upload order: every prefix of it overlaps (the edges join obverse and reverse), so each
+# registration the worker starts while faces are still arriving can place what it has.
+DEMO_FACES = ("obverse", "top", "bottom", "left", "right", "reverse")
 FALLBACK_CATALOGUE = (
     "key,designation,museum_no,period,provenience,genre,language\n"
     "P000001,Demo tablet,Demo 1,Old Babylonian,Sippar,legal,Akkadian\n"
@@ -97,11 +104,14 @@ class LocalLibrary:
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
-    def cli(self, *args: str, check: bool = True) -> subprocess.CompletedProcess:
+    def cli(
+        self, *args: str, check: bool = True, stdin: str | None = None
+    ) -> subprocess.CompletedProcess:
         result = subprocess.run(
             [sys.executable, "-m", "backend.cli", *args],
             env=self.env,
             cwd=self.data_dir,
+            input=stdin,
             capture_output=True,
             text=True,
             timeout=300,
@@ -200,14 +210,21 @@ class LocalLibrary:
         finally:
             client.close()
 
-    def wait_tablet_model(self, tablet_id: int, *, timeout_s: float) -> dict | None:
-        """Poll until the worker's automatic registration has stored a whole-tablet model."""
+    def wait_tablet_model(self, tablet_id: int, *, timeout_s: float, scans: int = 0) -> dict | None:
+        """Poll until the worker's automatic registration has stored a whole-tablet model of
+        at least ``scans`` scans (a registration that started while faces were still being
+        reconstructed holds fewer; the worker queues another for the rest)."""
         deadline = time.monotonic() + timeout_s
         with self.client() as http:
             while time.monotonic() < deadline:
                 models = http.get("/models", params={"tablet_id": tablet_id})
-                if models.raise_for_status().json():
-                    return models.json()[-1]
+                done = [
+                    m
+                    for m in models.raise_for_status().json()
+                    if len((m.get("report") or {}).get("scans") or []) >= scans
+                ]
+                if done:
+                    return done[-1]
                 if self.workers and all(w.poll() is not None for w in self.workers):
                     raise RuntimeError(f"every worker exited; see {self.logs}")
                 time.sleep(0.5)
@@ -236,30 +253,59 @@ class LocalLibrary:
                 time.sleep(0.3)
 
 
-def simulate_tablet_zips(out_dir: Path, *, seed: int, size: tuple[int, int]) -> dict[str, Path]:
-    """Simulate all six faces (quick preset) and zip each bundle: {face: bundle.zip}."""
+def simulate_face_zip(out_dir: Path, face: str, *, seed: int, size: tuple[int, int]) -> Path:
+    """Simulate one face (quick preset) and zip its bundle, marked simulated; the simulator's
+    files are removed once zipped (at the paper's resolution a face is ~0.5 GB)."""
     from worker.simulate import simulate_scan
 
-    result = simulate_scan(out_dir / "sim", seed=seed, face="all", preset="quick", size=size)
-    zips = {}
-    for face, bundle in result.bundles.items():
-        zips[face] = Path(shutil.make_archive(str(out_dir / f"{face}-bundle"), "zip", bundle))
-    return zips
+    result = simulate_scan(out_dir / face, seed=seed, face=face, preset="quick", size=size)
+    plain = Path(shutil.make_archive(str(out_dir / f"{face}-plain"), "zip", result.bundles[face]))
+    zipped = rewrite_manifest(plain, out_dir / f"{face}-bundle.zip", mark_simulated)
+    plain.unlink()
+    shutil.rmtree(out_dir / face, ignore_errors=True)
+    return zipped
 
 
-def bundle_zip_as_new_scan(zip_path: Path, n: int, directory: Path) -> Path:
-    """The same bundle ZIP as another scan (manifest scan.id + "-n"): uploading it makes a new
-    scan and a new job. For load and queue tests that need many distinct scans cheaply."""
-    out = directory / f"bundle-{n}.zip"
+def mark_simulated(manifest: dict) -> None:
+    """``scan.tablet.simulated = "true"``: SCAN_BUNDLE.md's free metadata, read back by
+    :func:`worker.bundle.is_simulated` so that the API, the pages and the plates say so."""
+    manifest["scan"].setdefault("tablet", {})["simulated"] = "true"
+
+
+def rewrite_manifest(zip_path: Path, out: Path, change: Callable[[dict], None]) -> Path:
+    """A copy of the bundle ZIP whose manifest.json ``change`` edits in place (the frames are
+    copied byte for byte)."""
     with zipfile.ZipFile(zip_path) as src, zipfile.ZipFile(out, "w") as dst:
         for info in src.infolist():
             data = src.read(info)
             if info.filename == "manifest.json":
                 manifest = json.loads(data)
-                manifest["scan"]["id"] += f"-{n}"
+                change(manifest)
                 data = json.dumps(manifest).encode()
             dst.writestr(info, data)
     return out
+
+
+def bundle_zip_as_new_scan(zip_path: Path, n: int, directory: Path) -> Path:
+    """The same bundle ZIP as another scan (manifest scan.id + "-n"): uploading it makes a new
+    scan and a new job. For load and queue tests that need many distinct scans cheaply."""
+
+    def renamed(manifest: dict) -> None:
+        manifest["scan"]["id"] += f"-{n}"
+
+    return rewrite_manifest(zip_path, directory / f"bundle-{n}.zip", renamed)
+
+
+def port_is_free(port: int) -> bool:
+    """Whether 127.0.0.1:``port`` can be listened on now (as uvicorn does: SO_REUSEADDR, so a
+    port left in TIME_WAIT by the last run counts as free, one being listened on does not)."""
+    with socket.socket() as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
 
 
 class Progress:
@@ -305,8 +351,29 @@ def _job_text(row: dict) -> str:
     return row["state"]
 
 
+STAFF_EMAIL = "staff@demo.example"
+
+
 def run_demo(args: argparse.Namespace) -> int:
-    progress = Progress(total_steps=7)
+    if not 1 <= args.port <= 65535:
+        print(f"demo: --port must be 1..65535, got {args.port}", file=sys.stderr)
+        return 2
+    if not port_is_free(args.port):
+        print(
+            f"demo: port {args.port} on 127.0.0.1 is in use (another demo or service?); "
+            f"stop it, or choose another port: make demo PORT={args.port + 123}",
+            file=sys.stderr,
+        )
+        return 2
+    if args.width < 16 or args.height < 16:
+        print(
+            f"demo: --width/--height must be >= 16, got {args.width}×{args.height}", file=sys.stderr
+        )
+        return 2
+    from worker.simulate.acquisition import pixel_size_for
+
+    pixel_um = pixel_size_for(args.width, args.height)
+    progress = Progress(total_steps=6)
     data_dir = Path(args.data_dir).resolve()
     if data_dir.exists():
         shutil.rmtree(data_dir)
@@ -325,6 +392,17 @@ def run_demo(args: argparse.Namespace) -> int:
             progress.say(f"importing the catalogue {catalogue} (SQLite in {data_dir})")
         library.cli("import-catalogue", str(catalogue), "--public", "--institution", "Demo")
         library.create_admin_token()
+        staff_password = secrets.token_urlsafe(9)
+        library.cli(
+            "create-user",
+            STAFF_EMAIL,
+            "--role",
+            "staff",
+            "--institution",
+            "Demo",
+            "--password-stdin",
+            stdin=staff_password + "\n",
+        )
 
         progress.say("starting the library service and a reconstruction worker (embedded broker)")
         library.start_server()
@@ -333,19 +411,29 @@ def run_demo(args: argparse.Namespace) -> int:
         with library.client() as http:
             items = http.get("/tablets", params={"page_size": 1, "sort": "designation"})
             tablet = items.raise_for_status().json()["items"][0]
+        paper = " (the paper's)" if abs(pixel_um - 26.8) < 0.05 else ""
         progress.say(
-            f"simulating all six faces of a tablet for {tablet['designation']} "
-            f"(quick preset, {args.width}×{args.height} px)"
+            f"simulating the six faces of a tablet (a SIMULATED scan, labelled so) for "
+            f"{tablet['designation']}: quick preset, {args.width}×{args.height} px, "
+            f"{pixel_um:.1f} µm per pixel{paper}; each face is uploaded through the API "
+            "with the rig agent's upload client as soon as it is simulated, and the worker "
+            "reconstructs it while the next one is simulated"
         )
         work = Path(tempfile.mkdtemp(prefix="demo-sim-", dir=data_dir))
-        zips = simulate_tablet_zips(work, seed=args.seed, size=(args.width, args.height))
-
-        progress.say("uploading each face through the API with the rig agent's upload client")
         faces, job_ids = [], []
         for face in DEMO_FACES:
-            result = library.upload_bundle_zip(zips[face], tablet_id=tablet["id"])
+            t0 = time.monotonic()
+            bundle = simulate_face_zip(work, face, seed=args.seed, size=(args.width, args.height))
+            t1 = time.monotonic()
+            result = library.upload_bundle_zip(bundle, tablet_id=tablet["id"])
+            bundle.unlink()
             faces.append(face)
             job_ids.append(result["job"]["id"])
+            print(
+                f"      {face}: simulated in {t1 - t0:.0f} s, uploaded in "
+                f"{time.monotonic() - t1:.0f} s (job {result['job']['id']})",
+                flush=True,
+            )
         shutil.rmtree(work, ignore_errors=True)
 
         progress.say(f"reconstructing {len(job_ids)} scans on the worker")
@@ -358,7 +446,7 @@ def run_demo(args: argparse.Namespace) -> int:
             print("demo: some reconstructions failed:\n  " + "\n  ".join(failed), file=sys.stderr)
             return 1
         progress.say("registering the six faces into one tablet on the worker (automatic)")
-        whole = library.wait_tablet_model(tablet["id"], timeout_s=args.timeout)
+        whole = library.wait_tablet_model(tablet["id"], timeout_s=args.timeout, scans=len(job_ids))
         if whole is None:
             print(
                 f"demo: the whole-tablet registration did not finish in {args.timeout:.0f} s; "
@@ -367,11 +455,20 @@ def run_demo(args: argparse.Namespace) -> int:
             )
         else:
             print(f"      whole tablet: model {whole['id']}", flush=True)
-        url = f"{library.url}/tablet.html?id={tablet['id']}#m={rows[0]['model_id']}"
+        shown = whole["id"] if whole is not None else rows[0]["model_id"]
+        url = f"{library.url}/tablet.html?id={tablet['id']}#m={shown}"
         progress.say(f"ready: open {url}")
+        print(f"      the library: {library.url}/", flush=True)
+        what = "the whole tablet" if whole is not None else "the obverse"
+        print(f"      {what} (simulated scan): {url}", flush=True)
+        print(
+            f"      log in as staff at {library.url}/staff.html with {STAFF_EMAIL}, "
+            f"password {staff_password}",
+            flush=True,
+        )
         print(f"DEMO_URL {url}", flush=True)
         if args.exit_when_ready:
-            return _check_ready(library, url, rows[0]["model_id"])
+            return _check_ready(library, url, shown)
         print("serving until Ctrl-C", flush=True)
         while library.server is not None and library.server.poll() is None:
             time.sleep(1)
@@ -397,10 +494,16 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m worker.demo", description=__doc__.splitlines()[0]
     )
     parser.add_argument("--data-dir", default=str(REPO / "var" / "demo"), help="wiped at start")
-    parser.add_argument("--port", type=int, default=8000)
+    parser.add_argument("--port", type=int, default=8000, help="default 8000 (make demo PORT=N)")
     parser.add_argument("--seed", type=int, default=7)
-    parser.add_argument("--width", type=int, default=160)
-    parser.add_argument("--height", type=int, default=200)
+    parser.add_argument(
+        "--width",
+        type=int,
+        default=1280,
+        help="image width in px (default 1280: with --height 1024, the paper's 26.8 µm per "
+        "pixel; smaller sizes are coarser, e.g. 64×80 for a quick CI run)",
+    )
+    parser.add_argument("--height", type=int, default=1024, help="image height in px")
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds for the jobs")
     parser.add_argument(
         "--exit-when-ready", action="store_true", help="stop once the models are ready"

@@ -34,6 +34,7 @@ CONTENT_TYPES = {
     ".gltf": "model/gltf+json",
     ".ply": "application/ply",
     ".png": "image/png",
+    ".pdf": "application/pdf",
     ".jpg": "image/jpeg",
     ".json": "application/json",
     ".npy": "application/octet-stream",
@@ -95,10 +96,15 @@ class ModelOut(BaseModel):
     created_at: datetime
     report: dict[str, Any]
     assets: dict[str, str]
+    simulated: bool  # made from simulated scans (its report says so)
 
     @classmethod
     def of(cls, model: Model, *, api_prefix: str) -> ModelOut:
+        from worker.bundle import is_simulated  # as backend.uploads: loaded on first use
+
         base = f"{api_prefix}/models/{model.id}/assets"
+        report = model.report or {}
+        scan = report.get("scan") if isinstance(report.get("scan"), dict) else {}
         return cls(
             id=model.id,
             scan_id=model.scan_id,
@@ -108,6 +114,7 @@ class ModelOut(BaseModel):
             created_at=model.created_at,
             report=model.report or {},
             assets={name: f"{base}/{name}" for name in sorted(model.assets or {})},
+            simulated=report.get("simulated") is True or is_simulated(scan.get("tablet")),
         )
 
 

@@ -32,9 +32,12 @@ class ScanOut(BaseModel):
     created_at: datetime
     latest_job: JobOut | None
     models: list[ModelOut]
+    simulated: bool  # scan.tablet free metadata says so (worker.bundle.is_simulated)
 
     @classmethod
     def of(cls, session: Session, scan: Scan, *, api_prefix: str) -> ScanOut:
+        from worker.bundle import is_simulated  # as backend.uploads: loaded on first use
+
         job = latest_job(session, scan_id=scan.id)
         return cls(
             id=scan.id,
@@ -47,6 +50,7 @@ class ScanOut(BaseModel):
             created_at=scan.created_at,
             latest_job=JobOut.of(job) if job is not None else None,
             models=[ModelOut.of(m, api_prefix=api_prefix) for m in models_of_scan(session, scan)],
+            simulated=is_simulated((scan.manifest or {}).get("scan", {}).get("tablet")),
         )
 
 

@@ -152,9 +152,10 @@ function renderFaces(model) {
   }
   section.replaceChildren();
   const names = viewer.partNames();
+  // The publication plates (and their PDF) first; the single views after them.
   const plates = Object.keys(model?.assets ?? {})
-    .filter((n) => /^fatcross\/.+\.png$/.test(n))
-    .sort();
+    .filter((n) => /^fatcross\/.+\.(png|pdf)$/.test(n))
+    .sort((a, b) => Number(!/_fatcross/.test(a)) - Number(!/_fatcross/.test(b)) || a.localeCompare(b));
   section.hidden = !names.length && !plates.length;
   if (section.hidden) return;
   section.append(el('h2', {}, 'Faces'));
@@ -199,6 +200,8 @@ async function showModel(modelId) {
     });
     if (signal.aborted) return;
     currentModel = model;
+    // Simulated data must never pass for a measurement of the catalogued tablet.
+    $('simulated-badge').hidden = !model.simulated;
     $('model-select').value = String(model.id);
     renderDownloads(model);
     const restore = restoring;

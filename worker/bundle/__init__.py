@@ -5,7 +5,15 @@ See docs/bundle.md for the CLI (``python -m worker.bundle validate PATH``) and t
 
 from worker.bundle.container import Limits
 from worker.bundle.errors import BundleError, Problem
-from worker.bundle.manifest import Camera, Frame, Manifest, Reference, Scan, Source
+from worker.bundle.manifest import (
+    Camera,
+    Frame,
+    Manifest,
+    Reference,
+    Scan,
+    Source,
+    is_simulated,
+)
 from worker.bundle.reader import Bundle, open_bundle, validate_bundle
 from worker.bundle.writer import write_bundle
 
@@ -20,6 +28,7 @@ __all__ = [
     "Reference",
     "Scan",
     "Source",
+    "is_simulated",
     "open_bundle",
     "validate_bundle",
     "write_bundle",

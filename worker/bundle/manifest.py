@@ -26,6 +26,16 @@ CHANNELS = ("red", "green", "blue")
 MAX_MANIFEST_BYTES = 16 * 1024 * 1024
 
 
+def is_simulated(tablet: Mapping[str, object] | None) -> bool:
+    """Whether ``scan.tablet`` free metadata says the scan is simulated: ``"simulated":
+    "true"`` (the convention of docs/simulator.md) or the simulator's own ``"simulator"`` key.
+    Free metadata is not part of the contract; this is how this implementation reads it."""
+    if not tablet:
+        return False
+    flag = str(tablet.get("simulated", "")).strip().lower()
+    return flag in ("true", "1", "yes") or "simulator" in tablet
+
+
 @dataclass(frozen=True)
 class Scan:
     face: str

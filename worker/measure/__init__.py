@@ -42,6 +42,8 @@ def measure_bundle(
         "face": man.scan.face,
         # scan.pose initialises the registration of a tablet's scans (worker.register).
         "pose": None if man.scan.pose is None else [list(map(float, r)) for r in man.scan.pose],
+        # scan.tablet free metadata: the designation, and whether the scan is simulated.
+        "tablet": dict(man.scan.tablet),
     }
     obj = [f for f in bundle.frames if f.target == "object"]
     counts: dict[str, int] = defaultdict(int)

@@ -1,6 +1,7 @@
 """CLI: ``python -m worker.register MODEL_DIR... OUTDIR [--dpi N] [--name NAME]``.
 
-Writes OUTDIR/transforms.json, merged.ply, tablet.glb, report.json and fatcross/*.png.
+Writes OUTDIR/transforms.json, merged.ply, tablet.glb, report.json and the plates
+fatcross/NAME_fatcross_{natural,curvature}.png, NAME_fatcross.pdf and one PNG per view.
 Exit 0 on success, 2 on bad input (a clear message naming the culprit; nothing written).
 """
 
@@ -11,6 +12,7 @@ import sys
 from pathlib import Path
 
 from worker.register.io import RegisterInputError, write_output_dir
+from worker.register.plates import DEFAULT_LICENCE
 from worker.register.run import register_model_dirs
 
 
@@ -22,6 +24,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("paths", nargs="+", help="two or more model directories, then OUTDIR")
     p.add_argument("--dpi", type=float, default=600.0, help="fatcross resolution (default 600)")
     p.add_argument("--name", default="tablet", help="file name stem of the plates")
+    p.add_argument("--designation", help="the plates' title (default: --name)")
+    p.add_argument("--licence", default=DEFAULT_LICENCE, help="the plates' licence line")
     return p
 
 
@@ -38,7 +42,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: OUTDIR {out} exists and is not empty", file=sys.stderr)
         return 2
     try:
-        files, report = register_model_dirs(dirs, px_per_mm=args.dpi / 25.4, name=args.name)
+        files, report = register_model_dirs(
+            dirs,
+            px_per_mm=args.dpi / 25.4,
+            name=args.name,
+            designation=args.designation,
+            licence=args.licence,
+        )
         write_output_dir(out, files)
     except (RegisterInputError, ValueError, FileExistsError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -84,6 +84,7 @@ def load_model_dir(path: str | os.PathLike) -> tuple[ScanCloud, dict]:
         "mask": mask,
         "albedo": albedo,
         "pixel_size_um": float(pixel),
+        "tablet": scan.get("tablet") if isinstance(scan.get("tablet"), dict) else {},
         # The face model's shading maps, image grid, passed on as they are to the whole tablet.
         "shading_maps": {
             f.name: f.read_bytes() for f in sorted(d.glob("*.png")) if f.name in SHADING_MAPS

@@ -62,6 +62,11 @@ def run_job(job_id: int, session_factory, storage, progress: Callable[..., None]
             raise LookupError(f"job {job_id}: not found")
         tablet = session.get(Tablet, job.tablet_id)
         name = (tablet.designation if tablet is not None else None) or f"tablet-{job.tablet_id}"
+        # Plates are named by the P-number when there is one (P451806_fatcross_natural.png)
+        # and titled by it and the designation, as CDLI shows them.
+        p_number = tablet.p_number if tablet is not None else None
+        title = f"{p_number} ({name})" if p_number and p_number != name else name
+        name = p_number or name
         models = _latest_models(session, job.tablet_id)
     if len(models) < 2:
         return _fail(
@@ -83,7 +88,7 @@ def run_job(job_id: int, session_factory, storage, progress: Callable[..., None]
         progress("register", 0.2, force=True)
         safe = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in name)
         try:
-            files, report = register_model_dirs(dirs, name=safe)
+            files, report = register_model_dirs(dirs, name=safe, designation=title)
         except (RegisterInputError, ValueError) as exc:
             return _fail(session_factory, job_id, f"registration: {exc}")
         files["model.glb"] = files["tablet.glb"]

@@ -6,16 +6,14 @@ from __future__ import annotations
 import json
 import time
 
-from worker.register.fatcross import (
-    FATCROSS_VIEWS,
-    add_scale_bar,
-    compose_fatcross,
-    curvature_shading,
-    natural_colour,
-    render_orthographic,
-)
-from worker.register.io import face_asset_dir, load_model_dir, png_bytes
+import numpy as np
+from scipy import ndimage
+
+from worker.bundle import is_simulated
+from worker.register.fatcross import FaceMaps
+from worker.register.io import face_asset_dir, load_model_dir
 from worker.register.merge import face_normal_map, grid_mesh, merged_surface, scene_glb
+from worker.register.plates import DEFAULT_LICENCE, PlateInfo, fatcross_files
 from worker.register.refine import register_scans
 
 __all__ = ["face_files", "register_model_dirs", "whole_tablet_model"]
@@ -65,9 +63,15 @@ def _png(image) -> bytes:
 
 
 def register_model_dirs(
-    model_dirs: list[str], *, px_per_mm: float = DEFAULT_PX_PER_MM, name: str = "tablet"
+    model_dirs: list[str],
+    *,
+    px_per_mm: float = DEFAULT_PX_PER_MM,
+    name: str = "tablet",
+    designation: str | None = None,
+    licence: str = DEFAULT_LICENCE,
 ) -> tuple[dict[str, bytes], dict]:
-    """Register the scans of ``model_dirs``; returns (files by name, report)."""
+    """Register the scans of ``model_dirs``; returns (files by name, report). ``name`` is the
+    plates' file-name stem, ``designation`` their title (default ``name``)."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     loaded = [load_model_dir(d) for d in model_dirs]
@@ -85,31 +89,35 @@ def register_model_dirs(
     glb = files.pop("model.glb")
     timings["merge"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    colour, curvature = {}, {}
-    for suffix, rot in FATCROSS_VIEWS.items():
-        r = render_orthographic(
-            merged.vertices,
-            merged.faces,
-            merged.visual.vertex_colors,
-            merged.vertex_normals,
-            rot,
-            px_per_mm=px_per_mm,
+    # The plates shade with each scan's own normals, steep wedge walls included (the
+    # registration left those out); only the rim, seen at a grazing angle, is dropped.
+    faces = [
+        FaceMaps(
+            t,
+            raw["normals"],
+            None if raw["albedo"] is None else _rgb8(raw["albedo"]),
+            ndimage.binary_erosion(raw["mask"], iterations=2),
+            raw["height_um"],
+            raw["pixel_size_um"],
         )
-        colour[suffix] = natural_colour(r)
-        curvature[suffix] = curvature_shading(r, px_per_mm=px_per_mm)
-    gap = max(4, int(round(1.5 * px_per_mm)))
-    for kind, images in (("", colour), ("_curvature", curvature)):
-        for suffix, img in images.items():
-            files[f"fatcross/{name}{kind}_{suffix}.png"] = png_bytes(
-                add_scale_bar(img, px_per_mm=px_per_mm),
-                px_per_mm=px_per_mm,
-                description=f"{name} {suffix} {kind.strip('_') or 'colour'}, orthographic",
-            )
-        files[f"fatcross/{name}{kind}.png"] = png_bytes(
-            add_scale_bar(compose_fatcross(images, gap_px=gap), px_per_mm=px_per_mm),
-            px_per_mm=px_per_mm,
-            description=f"{name} fatcross {kind.strip('_') or 'colour'}",
-        )
+        for (_, raw), t in zip(loaded, reg.transforms, strict=True)
+    ]
+    info = PlateInfo(
+        designation or name,
+        licence=licence,
+        simulated=any(is_simulated(raw.get("tablet") or {}) for _, raw in loaded),
+    )
+    plate_files, fatcross_report = fatcross_files(
+        merged.vertices,
+        merged.faces,
+        merged.visual.vertex_colors,
+        merged.vertex_normals,
+        faces,
+        px_per_mm=px_per_mm,
+        name=name,
+        info=info,
+    )
+    files.update(plate_files)
     timings["fatcross"] = time.perf_counter() - t0
     transforms = {
         "convention": "X_tablet = rotation @ X_scan + translation_mm; scan frame as in "
@@ -129,7 +137,8 @@ def register_model_dirs(
         "pairs": [p.__dict__ for p in reg.pairs],
         "moved_by_icp": reg.restarts,
         "merged": {"vertices": len(merged.vertices), "triangles": len(merged.faces)},
-        "fatcross": {"px_per_mm": round(px_per_mm, 4), "dpi": round(px_per_mm * 25.4, 1)},
+        "fatcross": fatcross_report,
+        "simulated": info.simulated,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
     }
     files["transforms.json"] = json.dumps(transforms, indent=1).encode()
@@ -137,3 +146,8 @@ def register_model_dirs(
     files["tablet.glb"] = glb
     files["report.json"] = json.dumps(report, indent=1).encode()
     return files, report
+
+
+def _rgb8(albedo) -> np.ndarray:
+    a = np.asarray(albedo)
+    return np.repeat(a[..., None], 3, -1) if a.ndim == 2 else a[..., :3]

@@ -41,15 +41,21 @@ def test_cli_writes_transforms_meshes_plates_and_report(model_dirs, tmp_path, ca
         p["rms_um"] >= 0 and 0 < p["overlap"] <= 1 for p in report["pairs"]
     )
     assert report["fatcross"]["dpi"] == 150.0
+    assert report["simulated"] is False and report["fatcross"]["designation"] == "P1"
     merged = trimesh.load(out / "merged.ply", process=False)
     assert len(merged.faces) > 1000 and merged.visual.vertex_colors.shape[1] == 4
     glb = pygltflib.GLTF2().load_binary(str(out / "tablet.glb"))
     assert {n.name for n in glb.nodes if n.mesh is not None} == set(tr["scans"])
     for suffix in ("o", "r", "te", "be", "le", "re"):
-        for kind in ("", "_curvature"):
-            assert (out / "fatcross" / f"P1{kind}_{suffix}.png").is_file()
-    with Image.open(io.BytesIO((out / "fatcross" / "P1.png").read_bytes())) as im:
+        for kind in ("natural", "curvature"):
+            assert (out / "fatcross" / f"P1_{kind}_{suffix}.png").is_file()
+    assert (out / "fatcross" / "P1_fatcross.pdf").read_bytes().startswith(b"%PDF")
+    # The scans' own normals shade most of every view.
+    assert min(report["fatcross"]["normals_from_scans"].values()) > 0.5
+    assert report["fatcross"]["curvature_display_per_mm"] > 0  # one range for the plate
+    with Image.open(io.BytesIO((out / "fatcross" / "P1_fatcross_natural.png").read_bytes())) as im:
         assert im.text["px_per_mm"] == f"{150 / 25.4:.4f}"
+        assert im.text["Title"].startswith("P1") and im.text["Simulated"] == "false"
         assert abs(im.info["dpi"][0] - 150) < 0.5
         assert im.mode == "RGB" and im.size[0] > 50
 

@@ -25,10 +25,11 @@ def env(tmp_path):
     capp.configure(previous)
 
 
-def _tablet_with_models(settings, model_dirs) -> int:
+def _tablet_with_models(settings, model_dirs, *, p_number: str | None = None) -> int:
     storage = storage_from_settings(settings)
     with capp.session_factory()() as session:
-        tablet = Tablet(designation="P000001")
+        tablet = Tablet(designation="P000001" if p_number is None else "CUSAS 1, 1")
+        tablet.p_number = p_number
         session.add(tablet)
         session.flush()
         for i, d in enumerate(model_dirs):
@@ -73,13 +74,25 @@ def test_register_job_stores_a_tablet_model_with_plates(env, tmp_path):
             "tablet.glb",
             "merged.ply",
             "transforms.json",
-            "fatcross/P000001.png",
+            "fatcross/P000001_fatcross_natural.png",
+            "fatcross/P000001_fatcross.pdf",
         ):
             assert name in model.assets, name
         # Every face keeps its full-resolution normals (with blending weights) for the viewer.
         for d in dirs:
             assert f"faces/sim-0-{d.name}/normals.png" in model.assets, sorted(model.assets)
         assert model.report["pairs"]
+
+
+@pytest.mark.slow
+def test_register_job_names_plates_by_p_number_titled_with_the_designation(env, tmp_path):
+    dirs, _ = write_gt_model_dirs(tmp_path / "models", size=(48, 40), faces=["obverse", "top"])
+    job_id = _tablet_with_models(env, dirs, p_number="P000002")
+    assert tasks.register_tablet.apply(args=[job_id]).get() == "succeeded"
+    with capp.session_factory()() as session:
+        model = session.get(Model, session.get(Job, job_id).model_id)
+        assert "fatcross/P000002_fatcross_natural.png" in model.assets
+        assert model.report["fatcross"]["designation"] == "P000002 (CUSAS 1, 1)"
 
 
 def test_register_job_with_one_model_fails_with_a_message(env, tmp_path):
