@@ -346,4 +346,7 @@ def physics_from_dict(doc: dict) -> Physics:
             raise ValueError(
                 f"physics.specular_lobes: expected [[weight, exponent], ...], got {lobes!r}"
             ) from None
-    return Physics(**kwargs)
+    try:
+        return Physics(**kwargs)
+    except TypeError as exc:  # a string where a number belongs, and the like
+        raise ValueError(f"physics: a field has the wrong type ({exc})") from None

@@ -83,6 +83,8 @@ def _march_body(
 ) -> np.ndarray:
     """Sphere trace the smooth body from t0; returns t of the hit or inf."""
     t = t0.copy()
+    # A ray restarted beyond the bounding box (it left a cavity there) meets nothing more.
+    t[t > t_far] = np.inf
     active = np.flatnonzero(t < t_far)
     for _ in range(_MAX_MARCH):
         if active.size == 0:
@@ -211,6 +213,11 @@ def cast_rays(
     d = dirs if dirs.ndim == 1 else dirs[body]
     _, grad = pillow.sdf_and_gradient(origins[body] + t[body, None] * d)
     normals[body] = grad / np.linalg.norm(grad, axis=1, keepdims=True)
+    # A ray that left a cavity inside the roughness band behind the body can be refined onto
+    # the far side, where the surface faces away from it: that is where it leaves the body,
+    # never a first hit (rays start outside), so it misses.
+    away = body[np.sum(normals[body] * d, axis=1) > 0]
+    t[away], hit[away], normals[away] = np.inf, False, np.nan
     on_facet = hit & (facet >= 0)
     normals[on_facet] = exit_normal[on_facet]
     return Hits(t_um=t, hit=hit, normals=normals, facet=np.where(hit, facet, -1))

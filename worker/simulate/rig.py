@@ -13,6 +13,12 @@ the fringe factor only for fringe frames, and δ₀ an unknown phase offset per 
 polar angle and period. The reference target is the same light on a flat matte white
 target at h = 0. Samples are box-averaged over each pixel, stray light is added, and
 the image is blurred by the camera's Gaussian PSF.
+
+``Rig.physics`` (``physics.py``) adds what the ideal model leaves out: the projector's
+profile (``projector.py``) with phase-step errors and a modulation that varies per
+azimuth and across the field, light scattered in the clay, specular lobes,
+interreflection and a veil, hot pixels, and camera overrides. Its default, the ideal
+instrument, leaves every frame bit for bit as above.
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
+from scipy.ndimage import gaussian_filter, map_coordinates
 
 from worker.simulate.noise import NoiseModel, encode_frame, fixed_pattern_e
 from worker.simulate.physics import IDEAL, Physics
@@ -116,13 +122,18 @@ class Rig:
         return float(rng.uniform(0, 2 * np.pi))
 
     def phase_step_error(self, frame: FrameSpec) -> float:
-        """This frame's error (rad) on its nominal phase step, N(0, σ) per frame (0 if ideal)."""
+        """This frame's error (rad) on its nominal phase step, N(0, σ) (0 if ideal).
+
+        Drawn per azimuth, polar angle, period and step, the same for the object and the
+        reference: a projector's stepping error repeats, so the phase constant that the
+        reference frames measure stays the object's (SCAN_BUNDLE.md) and what is left is a
+        ripple of the 4-step phase.
+        """
         sigma = self.physics.phase_step_error_deg
         if sigma == 0:
             return 0.0
-        target = 1 if frame.target == "object" else 2
         keys = _key(frame.azimuth_deg % 360, frame.polar_deg, frame.period_um, frame.phase_deg)
-        rng = np.random.default_rng([self.seed, 0x57E9, target, *keys])
+        rng = np.random.default_rng([self.seed, 0x57E9, *keys])
         return float(np.radians(rng.normal(0.0, sigma)))
 
     def modulation_scale(
@@ -348,6 +359,24 @@ def _fringe_general(view: View, frame: FrameSpec, rig: Rig, noise: NoiseModel) -
     return box_mean(samples, view.supersample).astype(np.float64)
 
 
+def _lowpass(image: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Gaussian blur of σ px; wide ones on a k× coarser grid (k = σ/4: block means, a
+    Gaussian of the remaining σ, bilinear back), which is as smooth and 10-50× cheaper."""
+    k = int(sigma_px // 4)
+    if k < 2:
+        return gaussian_filter(image, sigma_px, mode="nearest")
+    h, w = image.shape
+    padded = np.pad(image, ((0, -h % k), (0, -w % k)), mode="edge")
+    small = padded.reshape(padded.shape[0] // k, k, padded.shape[1] // k, k).mean(axis=(1, 3))
+    # A k-pixel box has variance (k² - 1)/12 px²; the Gaussian adds the rest.
+    rest = np.sqrt(max(sigma_px**2 - (k * k - 1) / 12, 0.0)) / k
+    small = gaussian_filter(small, rest, mode="nearest")
+    rows = (np.arange(h) + 0.5) / k - 0.5
+    cols = (np.arange(w) + 0.5) / k - 0.5
+    coords = np.meshgrid(rows, cols, indexing="ij")
+    return map_coordinates(small, coords, order=1, mode="nearest")
+
+
 def _interreflection(view: View, radiance: np.ndarray, physics: Physics) -> np.ndarray:
     """Second bounce: f·ρ(p)·c(p)·(G_σ * L)(p), with c = clip((G_σ*h - h)/(σ/4), 0, 1) the
     concavity (how far p lies below its surroundings: a flat or convex surface sees none of
@@ -356,13 +385,13 @@ def _interreflection(view: View, radiance: np.ndarray, physics: Physics) -> np.n
 
     def weight():
         h = box_mean(view.height_ss_um, view.supersample).astype(np.float64)
-        below = gaussian_filter(h, sigma_px, mode="nearest") - h
+        below = _lowpass(h, sigma_px) - h
         concave = np.clip(below / (0.25 * physics.interreflection_um), 0.0, 1.0)
         rho = box_mean(view.albedo_ss, view.supersample).mean(axis=-1).astype(np.float64)
         return physics.interreflection * rho * concave
 
     w = _cached(view, "interreflection", (sigma_px, physics.interreflection), weight)
-    return w * gaussian_filter(radiance, sigma_px, mode="nearest")
+    return w * _lowpass(radiance, sigma_px)
 
 
 def frame_radiance(view: View, frame: FrameSpec, rig: Rig, noise: NoiseModel) -> np.ndarray:

@@ -3,9 +3,10 @@
 View frame = the spec's frame: the centre of pixel (r, c) images (c·s, r·s), the camera
 looks along +z and a visible surface point is (x, y, -h). A tablet point X maps to
 ``pose @ X + translation_um``. Each pixel is sampled at ``supersample``² points
-(centres of a regular sub-grid); ground truth is the box average over them, normals
-from the averaged slopes so that they agree with the averaged heights:
-``n ∝ (-mean ∂h/∂x, -mean ∂h/∂y, -1)``.
+(centres of a regular sub-grid). ``View.ground_truth`` is the box average over them,
+normals from the averaged slopes so that they agree with the averaged heights:
+``n ∝ (-mean ∂h/∂x, -mean ∂h/∂y, -1)``; the ground truth written beside a bundle is the
+point sample at each pixel centre (``scan.point_truth``, SCAN_BUNDLE.md's output).
 """
 
 from __future__ import annotations

@@ -124,6 +124,10 @@ def test_bad_physics_is_refused_with_the_field_named():
         Physics(support="table")
     with pytest.raises(ValueError, match="unknown fields"):
         physics_from_dict({"psf": 1.0})
+    with pytest.raises(ValueError, match="physics"):
+        physics_from_dict({"veil": "a lot"})
+    assert IDEAL.is_ideal and Physics(name="other").is_ideal
+    assert not PHYSICS_VARIANTS["psf"].is_ideal
     with pytest.raises(ValueError, match="physics_seed"):
         resolve_physics("random", None)
     with pytest.raises(ValueError, match="unknown"):
@@ -439,3 +443,49 @@ def test_gt_height_is_the_point_sample_at_the_pixel_centre(tmp_path):
     assert np.allclose(ridge - side, 2 * s_mm * 1000 * slope, atol=1e-3)  # exact, no box
     assert np.allclose(area["height"][rows, 10] - ridge, -slope * s_mm * 1000 / 4, atol=1e-3)
     assert np.allclose(gt["normals"][rows, 9, 0], -slope / np.hypot(1, slope), atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["paper-like", "harmonics", "phase-steps", "modulation-field"])
+def test_the_spec_phase_relation_survives_the_projector_and_clay(name):
+    """Only Δψ = -2π·h·tanθ/P is guaranteed: a step of known height, fringes across it."""
+    from worker.simulate.view import flat_view, sample_coords_um
+
+    w, h, s, period, step_um = 40, 32, 100.0, 800.0, 150.0  # 4 whole periods along y
+    xs = sample_coords_um(w, s, SS)[None, :]
+    height = np.where(xs >= w * s / 2, step_um, 0.0) * np.ones((h * SS, 1))
+    normals = np.broadcast_to(np.array([0.0, 0.0, -1.0]), (*height.shape, 3))
+    rig = Rig(3, w * s, h * s, irradiance_variation=0.1, physics=PHYSICS_VARIANTS[name])
+    psi = {}
+    for target in ("object", "reference"):
+        view = flat_view(w, h, s, SS, height_ss_um=height, normals_ss=normals, albedo=0.45)
+        frames = [
+            _radiance(view, rig, FrameSpec("fringe", target, 0.0, 45.0, None, period, ph))
+            for ph in (0.0, 90.0, 180.0, 270.0)
+        ]
+        psi[target] = np.arctan2(frames[3] - frames[1], frames[0] - frames[2])
+    delta = np.angle(np.exp(1j * (psi["object"] - psi["reference"])))
+    expected = -2 * np.pi * step_um * np.tan(np.radians(45.0)) / period
+    # Harmonics and step errors leave a ripple along the fringes (rows) that averages out
+    # over the four whole periods of each column; the clay's blur stays 6 σ from the step.
+    left, right = delta[:, 2 : w // 2 - 6], delta[:, w // 2 + 6 : -2]
+    assert np.abs(left.mean(axis=0)).max() < 0.01
+    assert np.abs(right.mean(axis=0) - expected).max() < 0.01
+
+
+def test_rays_through_a_break_see_the_tablet_or_nothing():
+    """Rays that cross the whole broken-off part leave its cavity behind the tablet: they
+    must miss, not stop there (seen as clay facing away from the camera, 6 mm deep)."""
+    from worker.simulate.tablet import FACE_POSES
+    from worker.simulate.view import render_view
+
+    tablet = make_tablet(2, shape="broken")
+    view = render_view(
+        tablet,
+        FACE_POSES["obverse"],
+        width=100,
+        height=80,
+        pixel_size_um=200.0,
+        supersample=2,
+        centre_um=(-4000.0, -3000.0),
+    )
+    assert (view.normals_ss[view.tablet_ss][:, 2] < 0).all()
