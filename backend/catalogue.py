@@ -233,12 +233,19 @@ def import_catalogue(
         wanted[fields["p_number"]] = (where, fields)
 
     columns = [getattr(Tablet, c) for c in _COMPARED]
+    # A P-number is unique per institution (crud.p_number_taken): the file's records are
+    # matched with that institution's records only (or those of no institution).
+    scope = (
+        Tablet.institution_id.is_(None)
+        if institution_id is None
+        else Tablet.institution_id == institution_id
+    )
     existing = {
         row.p_number: row
         for row in session.execute(
             select(
                 Tablet.id, Tablet.p_number, Tablet.is_public, Tablet.institution_id, *columns
-            ).where(Tablet.p_number.is_not(None))
+            ).where(Tablet.p_number.is_not(None), scope)
         )
     }
     now = datetime.now(UTC)
@@ -254,8 +261,6 @@ def import_catalogue(
         change = {c: fields[c] for c in _COMPARED if getattr(old, c) != fields[c]}
         if is_public is not None and old.is_public != is_public:
             change["is_public"] = is_public
-        if institution_id is not None and old.institution_id != institution_id:
-            change["institution_id"] = institution_id
         if change:
             changed_rows.append(dict(change, id=old.id, updated_at=now))
         else:

@@ -59,16 +59,14 @@ def cmd_migrate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _resend_lost_jobs(settings: Settings, factory) -> None:
-    """Jobs the broker lost while the service was down are sent again, once, in the
-    background (workers sweep periodically: backend.queue)."""
-    import threading
+def _start_sweeper(settings: Settings, factory) -> None:
+    """The job sweeper in the service too (backend.sweeper): jobs the broker could not take
+    are sent once it is back, lost jobs re-sent, abandoned uploads expired, even when no
+    worker is running."""
+    from backend.queue import dispatcher_from_settings
+    from backend.sweeper import Sweeper
 
-    from backend.jobs import dispatcher_from_settings
-    from backend.queue import Sweeper
-
-    sweeper = Sweeper(factory, dispatcher_from_settings(settings), settings)
-    threading.Thread(target=sweeper.run_once, name="startup-sweep", daemon=True).start()
+    Sweeper(factory, dispatcher_from_settings(settings), settings).start()
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -77,7 +75,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from backend.main import create_app
 
     settings = _settings()
-    _resend_lost_jobs(settings, _migrated_sessionmaker(settings))
+    _start_sweeper(settings, _migrated_sessionmaker(settings))
     options = dict(host=args.host, port=args.port, log_level=args.log_level)
     if args.workers > 1:
         # Each worker process builds its app from the same environment (create_app()).

@@ -15,7 +15,8 @@ from __future__ import annotations
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
-from sqlalchemy import ColumnElement, or_, select, true
+from sqlalchemy import ColumnElement, case, or_, select, true
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from backend import security
@@ -214,32 +215,86 @@ def get_tablet(session: Session, *, tablet_id: int) -> Tablet | None:
     return session.get(Tablet, tablet_id)
 
 
-def get_tablet_by_p_number(session: Session, *, p_number: str) -> Tablet | None:
-    return session.scalar(select(Tablet).where(Tablet.p_number == p_number))
+def get_tablet_by_p_number(session: Session, *, p_number: str, user: User | None) -> Tablet | None:
+    """The record ``user`` means by ``p_number``, among the records ``user`` may read.
+
+    A P-number is unique per institution, so several records may carry it; the caller's
+    own institution's record comes first, then the record of no institution (the shared
+    catalogue), then the oldest public one. Records the caller may not read are never
+    considered: whether they exist is not revealed.
+    """
+    own = user.institution_id if user is not None and user.role == Role.staff else None
+    whens = [(Tablet.institution_id == own, 0)] if own is not None else []
+    rank = case(*whens, (Tablet.institution_id.is_(None), 1), else_=2)
+    return session.scalars(
+        select(Tablet)
+        .where(Tablet.p_number == p_number, visible_clause(user))
+        .order_by(rank, Tablet.id)
+        .limit(1)
+    ).first()
+
+
+def p_number_taken(
+    session: Session, *, p_number: str, institution_id: int | None, exclude_id: int | None = None
+) -> bool:
+    """Whether ``institution_id`` (None: no institution) already has a record ``p_number``.
+
+    Only that institution's records count: its staff may see all of them, so a conflict
+    reveals nothing, and no other institution can block the P-number.
+    """
+    scope = (
+        Tablet.institution_id.is_(None)
+        if institution_id is None
+        else Tablet.institution_id == institution_id
+    )
+    query = select(Tablet.id).where(Tablet.p_number == p_number, scope)
+    if exclude_id is not None:
+        query = query.where(Tablet.id != exclude_id)
+    return session.scalar(query.limit(1)) is not None
 
 
 def create_tablet(
     session: Session, *, fields: dict[str, Any], institution_id: int | None
 ) -> Tablet:
-    """A new catalogue record; ValueError naming the field on a duplicate P-number."""
+    """A new catalogue record; ValueError naming the field on a duplicate P-number.
+
+    Duplicate means: the same P-number among records of the same institution (or, for a
+    record of no institution, among records of no institution); see :func:`p_number_taken`.
+    """
     p_number = fields.get("p_number")
-    if p_number and get_tablet_by_p_number(session, p_number=p_number) is not None:
-        raise ValueError(f"p_number: a tablet {p_number} already exists")
+    if p_number and p_number_taken(session, p_number=p_number, institution_id=institution_id):
+        raise ValueError(f"p_number: this institution already has a record {p_number}")
     values = {k: v for k, v in fields.items() if v is not None}
     values.setdefault("extra", {})
     values.setdefault("is_public", False)
     tablet = Tablet(**values, institution_id=institution_id, has_3d=False)
     session.add(tablet)
-    session.flush()
+    try:
+        session.flush()
+    except IntegrityError as exc:
+        if p_number and "p_number" in str(exc.orig):
+            # Registered concurrently in the same institution; the caller rolls back.
+            raise ValueError(
+                f"p_number: this institution already has a record {p_number}"
+            ) from None
+        raise
     return tablet
 
 
 def update_tablet(session: Session, *, tablet: Tablet, changes: dict[str, Any]) -> Tablet:
-    p_number = changes.get("p_number")
-    if p_number and p_number != tablet.p_number:
-        other = get_tablet_by_p_number(session, p_number=p_number)
-        if other is not None and other.id != tablet.id:
-            raise ValueError(f"p_number: a tablet {p_number} already exists")
+    """Apply ``changes``; ValueError when the P-number is taken in the record's (new)
+    institution."""
+    p_number = changes.get("p_number", tablet.p_number)
+    institution_id = changes.get("institution_id", tablet.institution_id)
+    moved = p_number != tablet.p_number or institution_id != tablet.institution_id
+    if (
+        p_number
+        and moved
+        and p_number_taken(
+            session, p_number=p_number, institution_id=institution_id, exclude_id=tablet.id
+        )
+    ):
+        raise ValueError(f"p_number: that institution already has a record {p_number}")
     for key, value in changes.items():
         setattr(tablet, key, value)
     tablet.updated_at = _now()

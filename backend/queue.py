@@ -1,37 +1,19 @@
-"""The job queue around the database: broker choice, Celery configuration, the sweeper.
+"""The broker side of the job queue: which broker, Celery's configuration, sending by name.
 
-The database is the source of truth for jobs; the broker only carries "run job N now".
-Anything the broker loses (Redis restarted without persistence, a worker killed with
-SIGKILL while it held a message) is found here by looking at the job rows:
-
-- a job ``queued`` for longer than ``job_queued_stale_after_s`` without being picked up, or
-- a job ``running`` whose heartbeat is older than ``job_stale_after_s``
-
-is sent again (:func:`sweep`). Each re-send first *claims* the row with a conditional UPDATE
-(``WHERE state = ... AND <timestamp> < cutoff``), so two sweepers never send the same job
-twice in one period. A duplicate message is harmless anyway: the worker checks the row
-before working (``worker.tasks``) and ``models.job_id`` is unique.
+The database is the source of truth for jobs (``backend.jobs``); the broker only carries
+"run job N now". This module knows nothing of job rows: ``backend.dispatch`` decides what a
+send means for a job, ``backend.sweeper`` finds the jobs the broker lost. Layers (checked by
+import-linter): sweeper → dispatch → jobs → queue.
 
 Embedded default: with no ``HAMMURABI_BROKER_URL`` the broker is kombu's SQLAlchemy
-transport on ``<data_dir>/broker.sqlite`` (no server). No worker code is imported here.
+transport on ``<data_dir>/broker.sqlite`` (no server). No worker code is imported here: the
+library sends tasks by name.
 """
 
 from __future__ import annotations
 
-import logging
-import threading
-from dataclasses import dataclass
-from datetime import UTC, datetime, timedelta
 from pathlib import Path
-from typing import Any
-
-from sqlalchemy import func, select, update
-from sqlalchemy.orm import Session, sessionmaker
-
-from backend.jobs import TASK_BY_KIND, Dispatcher
-from backend.tables import Job, JobState
-
-log = logging.getLogger("backend.queue")
+from typing import Any, Protocol
 
 EMBEDDED_BROKER_FILE = "broker.sqlite"
 
@@ -74,7 +56,8 @@ def celery_config(settings: Any) -> dict[str, Any]:
     }
     if url.startswith("redis"):
         # Redis re-delivers unacked messages after the visibility timeout: keep it beyond the
-        # time limit so a long job is never run twice; dead workers are the sweeper's job.
+        # time limit so a long job is never run twice; dead workers are found by the sweeper
+        # (backend.sweeper: dead owner process or stale heartbeat) within seconds.
         config["broker_transport_options"] = {"visibility_timeout": hard_s + 600}
     if is_embedded(url):
         # The embedded transports have no broadcast: no remote control or events.
@@ -83,190 +66,46 @@ def celery_config(settings: Any) -> dict[str, Any]:
     return config
 
 
-@dataclass(frozen=True)
-class SweepResult:
-    requeued_queued: list[int]
-    requeued_stale: list[int]
+class Dispatcher(Protocol):
+    """Anything that publishes a task by name (Celery's ``send_task`` signature)."""
 
-    @property
-    def count(self) -> int:
-        return len(self.requeued_queued) + len(self.requeued_stale)
+    def send_task(self, name: str, *, args: list[Any], task_id: str) -> Any: ...
 
 
-def _now() -> datetime:
-    return datetime.now(UTC)
+class CeleryDispatcher:
+    """Sends tasks by name to the broker of ``broker_url`` on ``queue``; no worker import."""
 
+    def __init__(self, *, broker_url: str, queue: str):
+        self.broker_url = broker_url
+        self.queue = queue
+        self._app = None
 
-def sweep(
-    session: Session,
-    dispatcher: Dispatcher,
-    *,
-    queued_stale_after_s: float,
-    running_stale_after_s: float,
-    now: datetime | None = None,
-    limit: int = 500,
-) -> SweepResult:
-    """Send again the jobs the broker lost; returns their ids. Commits each claim.
+    def send_task(self, name: str, *, args: list[Any], task_id: str) -> Any:
+        if self._app is None:
+            from celery import Celery
 
-    A running job with a stale heartbeat goes back to ``queued`` (its worker is gone); the
-    redelivered task starts it again (``attempts`` + 1). A send that fails leaves the row
-    claimed: it is tried again after the next stale period.
-    """
-    if queued_stale_after_s <= 0 or running_stale_after_s <= 0:
-        raise ValueError("queued_stale_after_s and running_stale_after_s must be > 0")
-    now = now or _now()
-    queued_cutoff = now - timedelta(seconds=queued_stale_after_s)
-    running_cutoff = now - timedelta(seconds=running_stale_after_s)
-    since = func.coalesce(Job.enqueued_at, Job.created_at)
-    beat = func.coalesce(Job.heartbeat_at, Job.started_at, Job.created_at)
-
-    lost = session.scalars(
-        select(Job.id)
-        .where(Job.state == JobState.queued, since < queued_cutoff)
-        .order_by(Job.id)
-        .limit(limit)
-    ).all()
-    stale = session.scalars(
-        select(Job.id)
-        .where(Job.state == JobState.running, beat < running_cutoff)
-        .order_by(Job.id)
-        .limit(limit)
-    ).all()
-    session.rollback()  # end the read transaction before the claims (SQLite locks)
-
-    requeued_queued = [
-        job_id
-        for job_id in lost
-        if _claim(session, job_id, JobState.queued, since < queued_cutoff, now)
-        and _send(session, dispatcher, job_id)
-    ]
-    requeued_stale = [
-        job_id
-        for job_id in stale
-        if _claim(session, job_id, JobState.running, beat < running_cutoff, now)
-        and _send(session, dispatcher, job_id)
-    ]
-    if requeued_queued or requeued_stale:
-        log.warning(
-            "sweeper: re-sent lost queued jobs %s and stale running jobs %s",
-            requeued_queued,
-            requeued_stale,
+            self._app = Celery("hammurabi-backend", broker=self.broker_url)
+        # A short publish retry: a dead broker must not hang the request; the job waits
+        # for the dispatcher loop instead (backend.dispatch).
+        return self._app.send_task(
+            name,
+            args=args,
+            task_id=task_id,
+            queue=self.queue,
+            retry=True,
+            retry_policy={"max_retries": 2, "interval_start": 0, "interval_step": 0.5},
         )
-    return SweepResult(requeued_queued, requeued_stale)
 
 
-def _claim(session: Session, job_id: int, state: JobState, condition, now: datetime) -> bool:
-    result = session.execute(
-        update(Job)
-        .where(Job.id == job_id, Job.state == state, condition)
-        .values(state=JobState.queued, enqueued_at=now, stage=None)
-        .execution_options(synchronize_session=False)
-    )
-    session.commit()
-    return result.rowcount == 1
+class RecordingDispatcher:
+    """Keeps what would have been sent (tests, and deployments without workers)."""
+
+    def __init__(self) -> None:
+        self.sent: list[tuple[str, list[Any], str]] = []
+
+    def send_task(self, name: str, *, args: list[Any], task_id: str) -> None:
+        self.sent.append((name, list(args), task_id))
 
 
-def _send(session: Session, dispatcher: Dispatcher, job_id: int) -> bool:
-    job = session.get(Job, job_id, populate_existing=True)
-    if job is None:
-        return False
-    task_id = f"job-{job.id}-attempt-{job.attempts + 1}-resend-{_now().timestamp():.0f}"
-    try:
-        dispatcher.send_task(TASK_BY_KIND[job.kind], args=[job.id], task_id=task_id)
-    except Exception:  # broker down: the next sweep tries again
-        log.exception("sweeper: could not re-send job %s", job_id)
-        return False
-    finally:
-        session.rollback()
-    return True
-
-
-def heartbeat(session: Session, *, job_id: int, attempt: int) -> bool:
-    """Refresh the heartbeat of ``job_id`` if it is still running as ``attempt``.
-
-    Returns False when the job is no longer ours (finished, or taken over after we were
-    thought dead): the caller should stop working on it.
-    """
-    result = session.execute(
-        update(Job)
-        .where(Job.id == job_id, Job.state == JobState.running, Job.attempts == attempt)
-        .values(heartbeat_at=_now())
-        .execution_options(synchronize_session=False)
-    )
-    session.commit()
-    return result.rowcount == 1
-
-
-def claim(session: Session, *, job_id: int, running_stale_after_s: float) -> int | None:
-    """Start ``job_id`` for this worker; return its attempt number, or None if not ours.
-
-    One conditional UPDATE (atomic on SQLite and PostgreSQL): a queued job, or a running one
-    whose heartbeat is older than ``running_stale_after_s`` (its worker died), becomes
-    running with ``attempts + 1``. A job that is finished, or running with a live
-    heartbeat elsewhere, is left alone: a redelivered or duplicated message does no work.
-    """
-    now = _now()
-    cutoff = now - timedelta(seconds=running_stale_after_s)
-    beat = func.coalesce(Job.heartbeat_at, Job.started_at, Job.created_at)
-    result = session.execute(
-        update(Job)
-        .where(
-            Job.id == job_id,
-            (Job.state == JobState.queued) | ((Job.state == JobState.running) & (beat < cutoff)),
-        )
-        .values(
-            state=JobState.running,
-            attempts=Job.attempts + 1,
-            started_at=now,
-            heartbeat_at=now,
-            progress=0.0,
-            stage="starting",
-            error=None,
-        )
-        .execution_options(synchronize_session=False)
-    )
-    session.commit()
-    if result.rowcount != 1:
-        return None
-    return session.scalar(select(Job.attempts).where(Job.id == job_id))
-
-
-class Sweeper:
-    """Runs :func:`sweep` now and then every ``interval_s`` in a daemon thread."""
-
-    def __init__(self, factory: sessionmaker[Session], dispatcher: Dispatcher, settings: Any):
-        self.factory = factory
-        self.dispatcher = dispatcher
-        self.interval_s = float(settings.job_sweep_interval_s)
-        self.queued_stale_after_s = float(settings.job_queued_stale_after_s)
-        self.running_stale_after_s = float(settings.job_stale_after_s)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-
-    def run_once(self) -> SweepResult | None:
-        try:
-            with self.factory() as session:
-                return sweep(
-                    session,
-                    self.dispatcher,
-                    queued_stale_after_s=self.queued_stale_after_s,
-                    running_stale_after_s=self.running_stale_after_s,
-                )
-        except Exception:  # a database hiccup must not kill the sweeper thread
-            log.exception("sweeper: sweep failed")
-            return None
-
-    def _loop(self) -> None:
-        self.run_once()
-        while not self._stop.wait(self.interval_s):
-            self.run_once()
-
-    def start(self) -> Sweeper:
-        self._thread = threading.Thread(target=self._loop, name="job-sweeper", daemon=True)
-        self._thread.start()
-        return self
-
-    def stop(self, timeout_s: float = 5.0) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout_s)
+def dispatcher_from_settings(settings: Any) -> CeleryDispatcher:
+    return CeleryDispatcher(broker_url=broker_url(settings), queue=settings.job_queue)

@@ -4,12 +4,19 @@ The one module that knows how each database does full-text search:
 
 - SQLite: the FTS5 table ``tablets_fts`` (external content, kept in sync by triggers made in
   the initial migration); relevance is FTS5's bm25 ``rank`` (lower is better).
-- PostgreSQL: the generated ``tablets.search_vector`` tsvector ('simple' configuration, GIN
-  index); relevance is ``ts_rank`` (higher is better).
+- PostgreSQL: the generated ``tablets.search_vector`` tsvector ('simple' configuration over
+  ``f_unaccent`` of the columns, GIN index); relevance is ``ts_rank`` (higher is better).
 
 Query text is cut into word tokens (``\\w+``); every token must match as a word prefix
-(``vat 152`` finds "VAT 15259"). Searched columns: designation, P-number, museum number,
-excavation number, primary publication and notes.
+(``vat 152`` finds "VAT 15259"), regardless of case and diacritics on both databases
+("puzris" finds "Puzriš"). Searched columns (migration 0004_search): designation, P-number,
+museum number, excavation number, primary publication, notes, period, genre, subgenre,
+provenience, language and collection, so "Ur III" finds the Ur III tablets.
+
+Facet values are grouped regardless of letter case (catalogues write "Mathematical" and
+"mathematical"): a facet lists each value once, under its most frequent spelling, with the
+count of all spellings, and filtering on a value accepts every spelling of it. The records
+keep the spelling their catalogue gave.
 
 Facets count values among the records that match the query text and every *other* filter
 (the usual multi-select facets: choosing "Old Babylonian" still lists the other periods
@@ -114,7 +121,9 @@ class _TextMatch:
         elif dialect == "postgresql":
             tsquery = " & ".join(f"{t}:*" for t in tokens)
             vector = sa.literal_column("tablets.search_vector")
-            query = func.to_tsquery(sa.literal_column("'simple'::regconfig"), sa.literal(tsquery))
+            query = func.to_tsquery(
+                sa.literal_column("'simple'::regconfig"), func.f_unaccent(sa.literal(tsquery))
+            )
             self.condition = vector.op("@@")(query)
             self.order = func.ts_rank(vector, query).desc()
             self.ranked = None
@@ -127,12 +136,29 @@ class _TextMatch:
         return stmt.where(self.condition)
 
 
-def _conditions(query: SearchQuery, user: User | None) -> dict[str, ColumnElement[bool]]:
+def _fold(value):
+    """The key a facet value is grouped and filtered by: its case-folded text."""
+    return value.casefold() if isinstance(value, str) else value
+
+
+def _spellings(session: Session, name: str, values: tuple[str, ...]) -> list[str]:
+    """Every stored spelling of ``values`` in column ``name`` (same text but for case), so a
+    filter stays an index-friendly IN on the column. A facet column holds a few hundred
+    distinct values, so reading them is cheap."""
+    wanted = {_fold(v) for v in values}
+    column = getattr(Tablet, name)
+    stored = session.scalars(select(column).where(column.is_not(None)).distinct())
+    return sorted({v for v in stored if _fold(v) in wanted} | set(values))
+
+
+def _conditions(
+    session: Session, query: SearchQuery, user: User | None
+) -> dict[str, ColumnElement[bool]]:
     """Named conditions: one per filter in force, plus visibility (key '')."""
     conditions: dict[str, ColumnElement[bool]] = {"": visible_clause(user)}
     for name, values in query.filters.items():
         if values:
-            conditions[name] = getattr(Tablet, name).in_(values)
+            conditions[name] = getattr(Tablet, name).in_(_spellings(session, name, values))
     if query.has_3d is not None:
         conditions["has_3d"] = Tablet.has_3d.is_(query.has_3d)
     return conditions
@@ -176,16 +202,17 @@ def _facet_counts(
     replaces a GROUP BY query per facet (the rows are at most the catalogue, a few columns).
     """
     active = [
-        (FACET_FIELDS.index(name), frozenset(values))
+        (FACET_FIELDS.index(name), frozenset(_fold(v) for v in values))
         for name, values in query.filters.items()
         if values
     ]
     if query.has_3d is not None:
         active.append((FACET_FIELDS.index("has_3d"), frozenset([query.has_3d])))
+    # Counted by spelling, then grouped by case-folded value (a few hundred keys per facet).
     counters = [Counter() for _ in FACET_FIELDS]
     total = 0
     for row in rows:
-        failed = [index for index, accepted in active if row[index] not in accepted]
+        failed = [index for index, accepted in active if _fold(row[index]) not in accepted]
         if not failed:
             total += 1
             for index, value in enumerate(row):
@@ -194,9 +221,23 @@ def _facet_counts(
             counters[failed[0]][row[failed[0]]] += 1
     facets = {}
     for name, counter in zip(FACET_FIELDS, counters, strict=True):
-        ordered = sorted(counter.items(), key=lambda kv: (-kv[1], kv[0] is None, str(kv[0])))
+        grouped = _group_spellings(counter)
+        ordered = sorted(grouped, key=lambda kv: (-kv[1], kv[0] is None, str(kv[0])))
         facets[name] = ordered[:facet_limit]
     return total, facets
+
+
+def _group_spellings(counter: Counter) -> list[tuple[str | bool | None, int]]:
+    """(value, count) with spellings that differ only in case merged under the most frequent
+    one (ties: the first in code-point order, so the label is stable)."""
+    groups: dict = {}
+    for value, count in counter.items():
+        groups.setdefault(_fold(value), []).append((value, count))
+    merged = []
+    for spellings in groups.values():
+        label = min(spellings, key=lambda vc: (-vc[1], str(vc[0])))[0]
+        merged.append((label, sum(count for _, count in spellings)))
+    return merged
 
 
 class FacetSnapshot:
@@ -400,7 +441,7 @@ def search_tablets(
     dialect = session.get_bind().dialect.name
     tokens = query_tokens(query.q)
     text = _TextMatch(dialect, tokens) if tokens else None
-    conditions = _conditions(query, user)
+    conditions = _conditions(session, query, user)
 
     order, ranked = _order(query, text)
     stmt = _filtered(select(Tablet), conditions, text, ranked=ranked).order_by(*order)

@@ -65,9 +65,25 @@ class Settings(BaseSettings):
     s3_access_key_id: str | None = None
     s3_secret_access_key: SecretStr | None = None
 
-    # uploads (used by backend.uploads)
-    upload_chunk_size_bytes: int = 8 * 1024 * 1024
-    upload_max_bytes: int = 20 * 1024**3
+    # uploads (used by backend.uploads; docs/admin.md "Upload limits and quotas")
+    upload_chunk_size_bytes: int = Field(default=8 * 1024 * 1024, gt=0)
+    upload_max_bytes: int = Field(
+        default=20 * 1024**3, gt=0, description="largest size_bytes one upload may declare"
+    )
+    upload_quota_bytes: int = Field(
+        default=500 * 1024**3,
+        ge=0,
+        description="per institution: bytes of its stored scans plus bytes received by its "
+        "open uploads; 0 = no quota",
+    )
+    upload_min_free_bytes: int = Field(
+        default=5 * 1024**3, ge=0, description="a chunk that would leave less free disk is 507"
+    )
+    upload_expire_after_s: float = Field(
+        default=7 * 24 * 3600.0,
+        gt=0,
+        description="an upload left open (or refused) this long is deleted by expire_uploads",
+    )
 
     # jobs (used by backend.jobs and the worker)
     broker_url: str | None = Field(
@@ -76,14 +92,37 @@ class Settings(BaseSettings):
         "sqla+sqlite:///<data_dir>/broker.sqlite (no server needed; backend.queue)",
     )
     job_queue: str = "reconstruct"
+    job_heartbeat_interval_s: float = Field(
+        default=5.0, gt=0, description="a running job's worker refreshes its heartbeat this often"
+    )
     job_stale_after_s: float = Field(
-        default=120.0, gt=0, description="a running job without heartbeat this long is re-sent"
+        default=15.0,
+        gt=0,
+        description="a running job without heartbeat this long is taken over (>= 2 heartbeats)",
     )
     job_queued_stale_after_s: float = Field(
         default=600.0, gt=0, description="a queued job not picked up this long is re-sent"
     )
-    job_sweep_interval_s: float = Field(default=30.0, gt=0, description="sweeper period")
+    job_sweep_interval_s: float = Field(default=5.0, gt=0, description="sweeper period")
+    job_dispatch_backoff_max_s: float = Field(
+        default=60.0, gt=0, description="longest wait between sends of a job the broker refused"
+    )
+    maintenance_interval_s: float = Field(
+        default=3600.0,
+        gt=0,
+        description="how often the sweeper expires uploads (upload_expire_after_s) and dead work folders",
+    )
     job_time_limit_s: float = Field(default=3600.0, gt=0, description="hard limit per task")
+
+    @model_validator(mode="after")
+    def _check_job_timing(self) -> Settings:
+        if self.job_stale_after_s < 2 * self.job_heartbeat_interval_s:
+            raise ValueError(
+                f"HAMMURABI_JOB_STALE_AFTER_S ({self.job_stale_after_s:g} s) must be at least "
+                f"two heartbeats (HAMMURABI_JOB_HEARTBEAT_INTERVAL_S = "
+                f"{self.job_heartbeat_interval_s:g} s): a live job would be taken over"
+            )
+        return self
 
     @model_validator(mode="after")
     def _refuse_default_secrets_in_production(self) -> Settings:

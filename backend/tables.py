@@ -23,6 +23,7 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    text,
 )
 from sqlalchemy import Enum as SAEnum
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
@@ -116,7 +117,8 @@ class Tablet(Base):
 
     id: Mapped[int] = mapped_column(primary_key=True)
     designation: Mapped[str] = mapped_column(String(300))
-    p_number: Mapped[str | None] = mapped_column(String(32), unique=True)
+    # Unique per institution, not library-wide (crud.create_tablet, migration 0003_p_number).
+    p_number: Mapped[str | None] = mapped_column(String(32), index=True)
     museum_no: Mapped[str | None] = mapped_column(String(300))
     collection: Mapped[str | None] = mapped_column(String(300))
     owner: Mapped[str | None] = mapped_column(String(300))
@@ -153,6 +155,14 @@ class Tablet(Base):
         Index("ix_tablets_collection", "collection"),
         Index("ix_tablets_language", "language"),
         Index("ix_tablets_designation", "designation"),
+        Index("uq_tablets_institution_p_number", "institution_id", "p_number", unique=True),
+        Index(
+            "uq_tablets_p_number_no_institution",
+            "p_number",
+            unique=True,
+            sqlite_where=text("institution_id IS NULL"),
+            postgresql_where=text("institution_id IS NULL"),
+        ),
     )
 
 
@@ -215,6 +225,12 @@ class Job(Base):
     started_at: Mapped[datetime | None]
     finished_at: Mapped[datetime | None]
     heartbeat_at: Mapped[datetime | None]
+    # The process of the current attempt (backend.jobs.process_owner): tells a dead attempt
+    # from a live one when Celery redelivers after a kill.
+    claimed_by: Mapped[str | None] = mapped_column(String(200))
+    # A queued job the broker could not take: sent again from dispatch_after (backoff).
+    dispatch_failures: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    dispatch_after: Mapped[datetime | None] = mapped_column(index=True)
     # No FK to models: models.job_id already points here; a cycle would complicate deletes.
     model_id: Mapped[int | None] = mapped_column(Integer)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)

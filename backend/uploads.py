@@ -1,15 +1,25 @@
-"""Resumable uploads of scan bundles: the part file, the received ranges, and completion.
+"""Resumable uploads of scan bundles: the part file, the received ranges, limits, completion.
 
 An upload is a DB row (``uploads``: size, received ``ranges``, state) plus a part file
-``<data_dir>/uploads/<id>.part`` preallocated to the full size. Chunks are written straight
-into the part file at their offset (``pwrite`` + fsync) and only then is their range merged
-into the row, so after a crash of the client or the server the row never claims bytes that
-are not on disk; the client asks ``GET /uploads/{id}`` what is missing and sends it again.
-Concurrent chunk requests merge their ranges with optimistic locking (``uploads.revision``).
+``<data_dir>/uploads/<id>.part``. The part file starts empty and grows only as bytes arrive
+(chunks are written at their offset, ``pwrite`` + fsync, into a sparse file): a declared
+``size_bytes`` reserves nothing, so a client cannot fill the disk by announcing a huge file.
+Only after a chunk is on disk is its range merged into the row, so after a crash of the
+client or the server the row never claims bytes that are not on disk; the client asks
+``GET /uploads/{id}`` what is missing and sends it again. Concurrent chunk requests merge
+their ranges with optimistic locking (``uploads.revision``).
+
+Limits (:class:`UploadLimits`, from the settings; docs/admin.md "Upload limits and quotas"):
+a maximum ``size_bytes`` per upload, a quota per institution counted as the bytes of its
+stored scans plus the bytes its open uploads have received, checked when an upload is
+created and again as each chunk arrives, and a margin of free disk that no chunk may eat.
 
 Completion checks the SHA-256, validates the bundle with :func:`worker.bundle.validate_bundle`
 (every problem is reported), stores the ZIP in :mod:`backend.storage`, and creates the scan
-and its job. Nothing is kept of a bundle that is refused.
+and its job. Nothing is kept of a bundle that is refused. A manifest ``scan.id`` that names
+an existing scan is idempotent only for the same bytes (same SHA-256, same tablet); anything
+else is a 409 naming that scan, and the upload stays open with its bytes until the client
+deletes it (or it expires).
 """
 
 from __future__ import annotations
@@ -17,18 +27,19 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
+import shutil
 import time
 import uuid
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
-from sqlalchemy import select
+from sqlalchemy import delete, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.orm.exc import StaleDataError
 
-from backend import jobs
+from backend import crud, jobs
 from backend.errors import ApiError
 from backend.storage import Storage, StorageError, storage_error_from_os
 from backend.tables import Job, Scan, Tablet, Upload, UploadState, User
@@ -80,6 +91,14 @@ def received_bytes(ranges: list[list[int]]) -> int:
     return sum(hi - lo for lo, hi in ranges)
 
 
+def new_bytes(ranges: list[list[int]], start: int, end: int) -> int:
+    """How many bytes of ``[start, end)`` are not in ``ranges`` yet (what a chunk adds)."""
+    if not 0 <= start <= end:
+        raise ValueError(f"range [{start}, {end}) must satisfy 0 <= start <= end")
+    overlap = sum(max(0, min(hi, end) - max(lo, start)) for lo, hi in ranges)
+    return end - start - overlap
+
+
 # --- the part file ---------------------------------------------------------------------------
 
 
@@ -87,47 +106,14 @@ def part_path(uploads_dir: Path, upload_id: str) -> Path:
     return Path(uploads_dir) / f"{uuid.UUID(upload_id)}.part"
 
 
-def create_part_file(path: Path, size_bytes: int) -> None:
-    """Preallocate ``size_bytes`` so a full disk is found now (507), not half way through."""
+def create_part_file(path: Path) -> None:
+    """Create the empty part file; it grows only as chunks arrive (nothing reserved)."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     except OSError as exc:
         raise storage_error_from_os(exc, None) from exc
-    try:
-        try:
-            os.posix_fallocate(fd, 0, size_bytes)
-        except OSError as exc:
-            if exc.errno not in (95, 22):  # EOPNOTSUPP/EINVAL: filesystem cannot preallocate
-                raise
-            os.ftruncate(fd, size_bytes)
-        os.fsync(fd)
-    except OSError as exc:
-        os.close(fd)
-        path.unlink(missing_ok=True)
-        raise storage_error_from_os(exc, None) from exc
     os.close(fd)
-
-
-def write_at(path: Path, offset: int, data: bytes) -> None:
-    """Write ``data`` at ``offset`` of the part file and make it durable."""
-    try:
-        fd = os.open(path, os.O_WRONLY)
-    except FileNotFoundError:
-        raise ApiError(409, "the upload's data is gone; create a new upload") from None
-    except OSError as exc:
-        raise storage_error_from_os(exc, None) from exc
-    try:
-        view = memoryview(data)
-        while view:
-            written = os.pwrite(fd, view, offset)
-            view = view[written:]
-            offset += written
-        os.fsync(fd)
-    except OSError as exc:
-        raise storage_error_from_os(exc, None) from exc
-    finally:
-        os.close(fd)
 
 
 def sha256_of(path: Path) -> str:
@@ -141,6 +127,115 @@ def sha256_of(path: Path) -> str:
 # --- state in the database -------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class UploadLimits:
+    """What one upload and one institution may hold (settings ``upload_*``; 0: no quota)."""
+
+    max_bytes: int
+    quota_bytes: int
+    min_free_bytes: int
+
+    @classmethod
+    def of(cls, settings) -> UploadLimits:
+        return cls(
+            max_bytes=settings.upload_max_bytes,
+            quota_bytes=settings.upload_quota_bytes,
+            min_free_bytes=settings.upload_min_free_bytes,
+        )
+
+
+def institution_usage_bytes(session: Session, *, institution_id: int) -> int:
+    """Bytes an institution holds: its stored scans plus what its open uploads received.
+
+    A declared ``size_bytes`` counts for nothing until the bytes arrive; an upload that is
+    deleted or expires gives its bytes back.
+    """
+    stored = session.scalar(
+        select(func.coalesce(func.sum(Scan.size_bytes), 0))
+        .join(Tablet, Tablet.id == Scan.tablet_id)
+        .where(Tablet.institution_id == institution_id)
+    )
+    receiving = session.scalars(
+        select(Upload.ranges)
+        .join(Tablet, Tablet.id == Upload.tablet_id)
+        .where(Tablet.institution_id == institution_id, Upload.state == UploadState.open)
+    )
+    return int(stored or 0) + sum(received_bytes(r or []) for r in receiving)
+
+
+@dataclass(frozen=True)
+class Budget:
+    """How many more bytes the institution of an upload may receive (None: no quota)."""
+
+    institution: str | None
+    used_bytes: int
+    quota_bytes: int | None
+
+    @property
+    def remaining_bytes(self) -> int | None:
+        if self.quota_bytes is None:
+            return None
+        return max(0, self.quota_bytes - self.used_bytes)
+
+    def fitting_prefix(self, ranges: list[list[int]], start: int, pos: int, length: int) -> int:
+        """The most bytes of ``[pos, pos + length)`` a chunk that began at ``start`` may write.
+
+        Counts, like the quota, only bytes outside ``ranges``; a binary search, since the new
+        bytes grow monotonically with the length.
+        """
+        if self.quota_bytes is None:
+            return length
+        lo, hi = 0, length
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            if self.used_bytes + new_bytes(ranges, start, pos + mid) <= self.quota_bytes:
+                lo = mid
+            else:
+                hi = mid - 1
+        return lo
+
+    def refusal(self, adding_bytes: int, *, where: str) -> ApiError | None:
+        """A 413 naming used / quota when ``adding_bytes`` more would pass the quota."""
+        if self.quota_bytes is None or self.used_bytes + adding_bytes <= self.quota_bytes:
+            return None
+        return ApiError(
+            413,
+            f"upload quota of {self.institution} exceeded: {self.used_bytes} of "
+            f"{self.quota_bytes} bytes used (stored scans + open uploads), "
+            f"{adding_bytes} more bytes would not fit; delete open uploads or ask an admin "
+            "for a larger quota",
+            where=where,
+        )
+
+
+def budget_of(session: Session, *, tablet: Tablet, limits: UploadLimits) -> Budget:
+    """The quota budget of ``tablet``'s institution (records of no institution: no quota)."""
+    if tablet.institution_id is None or limits.quota_bytes <= 0:
+        return Budget(institution=None, used_bytes=0, quota_bytes=None)
+    used = institution_usage_bytes(session, institution_id=tablet.institution_id)
+    name = tablet.institution.name if tablet.institution is not None else None
+    return Budget(
+        institution=f"institution {name!r}" if name else f"institution {tablet.institution_id}",
+        used_bytes=used,
+        quota_bytes=limits.quota_bytes,
+    )
+
+
+def check_free_disk(directory: Path, adding_bytes: int, *, min_free_bytes: int) -> None:
+    """507 when writing ``adding_bytes`` would leave less than ``min_free_bytes`` free."""
+    try:
+        free = shutil.disk_usage(directory).free
+    except OSError as exc:
+        raise storage_error_from_os(exc, None) from exc
+    if free - adding_bytes < min_free_bytes:
+        raise ApiError(
+            507,
+            f"the server's disk is nearly full ({free} bytes free, {adding_bytes} more asked, "
+            f"{min_free_bytes} kept free): nothing more was written; try again later",
+            where="storage",
+        )
+
+
 def create_upload(
     session: Session,
     *,
@@ -149,18 +244,34 @@ def create_upload(
     filename: str,
     size_bytes: int,
     uploads_dir: Path,
-    max_bytes: int,
+    limits: UploadLimits,
 ) -> Upload:
-    """A new open upload with its preallocated part file (flushed; the caller commits)."""
-    if size_bytes > max_bytes:
+    """A new open upload with its (empty) part file; flushed, the caller commits.
+
+    Refused up front (nothing created) when ``size_bytes`` is over the per-upload maximum
+    (413), could not fit in the institution's quota (413) or on the disk (507); none of
+    that reserves anything: the chunks are checked again as they arrive.
+    """
+    if size_bytes > limits.max_bytes:
         raise ApiError(
             413,
-            f"size_bytes {size_bytes} exceeds the limit of {max_bytes} bytes",
+            f"size_bytes {size_bytes} exceeds the limit of {limits.max_bytes} bytes per upload",
             where="size_bytes",
         )
+    refusal = budget_of(session, tablet=tablet, limits=limits).refusal(
+        size_bytes, where="size_bytes"
+    )
+    if refusal is not None:
+        raise refusal
+    uploads_dir = Path(uploads_dir)
+    try:
+        uploads_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise storage_error_from_os(exc, None) from exc
+    check_free_disk(uploads_dir, size_bytes, min_free_bytes=limits.min_free_bytes)
     upload_id = str(uuid.uuid4())
     path = part_path(uploads_dir, upload_id)
-    create_part_file(path, size_bytes)
+    create_part_file(path)
     try:
         upload = Upload(
             id=upload_id,
@@ -229,11 +340,14 @@ def complete_upload(
     uploads_dir: Path,
     storage: Storage,
     user: User,
+    api_prefix: str,
 ) -> Completion:
     """Check, validate and store the bundle; create scan + job. COMMITS (its own transaction).
 
-    Raises ApiError: 409 (bytes missing, upload refused before), 422 (checksum or bundle
-    problems: nothing kept); StorageError (507/503) leaves the upload open to try again.
+    Raises ApiError: 409 (bytes missing, upload refused before, or a ``scan.id`` that is
+    another scan: the upload stays open), 422 (checksum or bundle problems: nothing kept);
+    StorageError (507/503) leaves the upload open to try again. ``api_prefix`` makes the
+    URL named in a 409.
     """
     upload_id = upload.id
     try:
@@ -244,6 +358,7 @@ def complete_upload(
             uploads_dir=uploads_dir,
             storage=storage,
             user=user,
+            api_prefix=api_prefix,
         )
     except (StaleDataError, FileNotFoundError):
         # A concurrent completion of this very upload won the race: answer with its result.
@@ -264,6 +379,7 @@ def _complete(
     uploads_dir: Path,
     storage: Storage,
     user: User,
+    api_prefix: str,
 ) -> Completion:
     from worker.bundle import BundleError, open_bundle, validate_bundle
 
@@ -318,8 +434,19 @@ def _complete(
     if scan_meta.id:
         existing = session.scalar(select(Scan).where(Scan.scan_uid == scan_meta.id))
         if existing is not None:
-            return _same_scan(session, upload, path, existing)
-    return _create_scan(session, upload, path, storage, user, sha=actual, scan_meta=scan_meta)
+            return _same_scan(
+                session, upload, path, existing, sha=actual, user=user, api_prefix=api_prefix
+            )
+    return _create_scan(
+        session,
+        upload,
+        path,
+        storage,
+        user,
+        sha=actual,
+        scan_meta=scan_meta,
+        api_prefix=api_prefix,
+    )
 
 
 def _existing(session: Session, upload: Upload) -> Completion:
@@ -330,25 +457,59 @@ def _existing(session: Session, upload: Upload) -> Completion:
     return Completion(scan=scan, job=job, created=False)
 
 
-def _same_scan(session: Session, upload: Upload, path: Path, existing: Scan) -> Completion:
-    if existing.tablet_id != upload.tablet_id:
-        raise _refuse(
-            session,
-            upload,
-            path,
-            ApiError(
-                409,
-                f"scan.id {existing.scan_uid!r} is already a scan of another tablet; "
-                "nothing was kept",
-                where="manifest.scan.id",
-            ),
+def _same_scan(
+    session: Session,
+    upload: Upload,
+    path: Path,
+    existing: Scan,
+    *,
+    sha: str,
+    user: User,
+    api_prefix: str,
+) -> Completion:
+    """The same bytes again: the existing scan (idempotent). Anything else: 409, bytes kept."""
+    if existing.tablet_id != upload.tablet_id or existing.bundle_sha256 != sha:
+        raise _scan_id_conflict(
+            session, upload, existing, sha=sha, user=user, api_prefix=api_prefix
         )
     upload.state = UploadState.complete
+    upload.sha256 = sha
     upload.storage_key = existing.bundle_key
     upload.ranges = []
     session.commit()
     path.unlink(missing_ok=True)
     return _existing(session, upload)
+
+
+def _scan_id_conflict(
+    session: Session, upload: Upload, existing: Scan, *, sha: str, user: User, api_prefix: str
+) -> ApiError:
+    """409 naming the scan that holds ``scan.id``, when the caller may see it.
+
+    The upload stays open with its bytes (no silent loss): the client changes the bundle's
+    ``scan.id`` and uploads again, or deletes this upload; an abandoned one expires.
+    """
+    session.rollback()  # nothing of this attempt is kept in the database
+    tablet = session.get(Tablet, existing.tablet_id)
+    keep = (
+        f"this upload ({upload.id}) keeps its bytes: give the bundle a new scan.id and upload "
+        f"it again, or DELETE {api_prefix}/uploads/{upload.id} to discard it"
+    )
+    if tablet is None or not crud.can_read_tablet(user, tablet):
+        # The scan is on a record the caller may not see: say nothing about it.
+        return ApiError(
+            409, f"scan.id {existing.scan_uid!r} is already taken; {keep}", where="manifest.scan.id"
+        )
+    url = f"{api_prefix}/scans/{existing.id}"
+    if existing.tablet_id != upload.tablet_id:
+        why = f"is a scan of another tablet ({tablet.id})"
+    else:
+        why = f"was uploaded before with other content (sha256 {existing.bundle_sha256}, now {sha})"
+    return ApiError(
+        409,
+        f"scan.id {existing.scan_uid!r} is already scan {existing.id} ({url}), which {why}; {keep}",
+        where="manifest.scan.id",
+    )
 
 
 def _create_scan(
@@ -360,6 +521,7 @@ def _create_scan(
     *,
     sha: str,
     scan_meta,
+    api_prefix: str,
 ) -> Completion:
     upload_id = upload.id
     # A fresh key per attempt: a concurrent completion of the same upload never deletes
@@ -391,7 +553,15 @@ def _create_scan(
         existing = session.scalar(select(Scan).where(Scan.scan_uid == scan_meta.id))
         if existing is None:
             raise
-        return _same_scan(session, session.get(Upload, upload_id), path, existing)
+        return _same_scan(
+            session,
+            session.get(Upload, upload_id),
+            path,
+            existing,
+            sha=sha,
+            user=user,
+            api_prefix=api_prefix,
+        )
     try:
         storage.put_file(key, path, sha256=sha)
         job = jobs.create(session, scan=scan)
@@ -424,24 +594,44 @@ def expire_uploads(
 ) -> int:
     """Delete uploads left open (or refused) for ``older_than``, with their part files.
 
-    Also removes part files that no upload row names (a crash between preallocating and
-    committing). Flushes; the caller commits. Returns how many uploads were deleted.
+    Deleting the row gives the upload's received bytes back to its institution's quota.
+    Also removes part files that no upload row names and that are as old (a crash between
+    creating the file and committing the row). Idempotent and safe beside chunks arriving
+    and beside another sweep: each row is deleted by a conditional DELETE that re-checks
+    state and age, and only the run that deleted it removes its file (on PostgreSQL a
+    concurrent sweep waits for the row lock and then deletes nothing; SQLite serialises
+    writers, so the later sweep fails with "database is locked"). Flushes; the caller
+    commits. Returns how many uploads this call deleted.
     """
     if older_than.total_seconds() <= 0:
         raise ValueError(f"older_than must be positive, got {older_than}")
     cutoff = (now or datetime.now(UTC)) - older_than
-    stale = session.scalars(
-        select(Upload).where(Upload.state != UploadState.complete, Upload.updated_at < cutoff)
-    ).all()
-    for upload in stale:
-        part_path(uploads_dir, upload.id).unlink(missing_ok=True)
-        session.delete(upload)
+    still_stale = (Upload.state != UploadState.complete, Upload.updated_at < cutoff)
     session.flush()
+    candidates = session.scalars(select(Upload.id).where(*still_stale)).all()
+    deleted = 0
+    for upload_id in candidates:
+        # A chunk recorded since the SELECT moved updated_at: the row is no longer stale.
+        result = session.execute(
+            delete(Upload)
+            .where(Upload.id == upload_id, *still_stale)
+            .execution_options(synchronize_session=False)
+        )
+        if result.rowcount == 1:
+            deleted += 1
+            part_path(uploads_dir, upload_id).unlink(missing_ok=True)
+            loaded = session.identity_map.get(session.identity_key(Upload, upload_id))
+            if loaded is not None:  # its row is gone: never flush it again
+                session.expunge(loaded)
     uploads_dir = Path(uploads_dir)
     if uploads_dir.is_dir():
         known = set(session.scalars(select(Upload.id)))
         for part in uploads_dir.glob("*.part"):
-            orphan = part.stem not in known
-            if orphan and datetime.fromtimestamp(part.stat().st_mtime, tz=UTC) < cutoff:
+            try:
+                upload_id = str(uuid.UUID(part.stem))
+                modified = datetime.fromtimestamp(part.stat().st_mtime, tz=UTC)
+            except (ValueError, FileNotFoundError):
+                continue  # not a part file of ours, or removed meanwhile
+            if upload_id not in known and modified < cutoff:
                 part.unlink(missing_ok=True)
-    return len(stale)
+    return deleted

@@ -15,6 +15,9 @@ dpkg -s libusb-1.0-0 >/dev/null 2>&1 || apt_wanted+=(libusb-1.0-0)   # open3d im
 dpkg -s libgl1 >/dev/null 2>&1 || apt_wanted+=(libgl1 libgomp1)        # open3d's shared libs
 command -v docker-compose >/dev/null || docker compose version >/dev/null 2>&1 || apt_wanted+=(docker-compose)
 command -v psql >/dev/null || apt_wanted+=(postgresql-client)
+# Dr.Jit's LLVM backend for Mitsuba's llvm_ad_rgb variant (LLVM 15 cannot compile its
+# kernels); without it worker.simulate.mitsuba falls back to the slower scalar_rgb.
+dpkg -s libllvm19 >/dev/null 2>&1 || apt_wanted+=(libllvm19)
 if [ ${#apt_wanted[@]} -gt 0 ]; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
     log "installing Debian packages: ${apt_wanted[*]}"

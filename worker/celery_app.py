@@ -5,9 +5,11 @@ Configured from the one settings object (``HAMMURABI_*``, ``backend.settings``) 
 job row is the result). With no ``HAMMURABI_BROKER_URL`` the broker is the embedded SQLite
 one in ``<data_dir>`` (no server). ``hammurabi worker`` runs this with sensible options.
 
-When the worker is ready it starts the job sweeper (``backend.queue.Sweeper``): at once,
-then every ``job_sweep_interval_s`` it re-sends jobs the broker lost and jobs whose worker
-died (stale heartbeat).
+When the worker is ready it removes the work folders of dead attempts (a previous kill -9)
+and starts the job sweeper (``backend.sweeper.Sweeper``): at once, then every
+``job_sweep_interval_s`` it sends jobs awaiting dispatch and re-sends jobs the broker lost
+and jobs whose worker died; every ``maintenance_interval_s`` it removes dead work folders
+(abandoned uploads are expired by the service's sweeper, which holds their part files). A pool process that replaces a killed one also removes dead folders.
 """
 
 from __future__ import annotations
@@ -20,9 +22,10 @@ from celery import Celery, signals
 from sqlalchemy.orm import Session, sessionmaker
 
 from backend.db import make_engine, make_sessionmaker
-from backend.jobs import dispatcher_from_settings
-from backend.queue import Sweeper, celery_config
+from backend.jobs import remove_dead_work_folders, work_root
+from backend.queue import celery_config, dispatcher_from_settings
 from backend.settings import Settings, get_settings
+from backend.sweeper import Sweeper
 
 log = logging.getLogger("worker.celery_app")
 
@@ -54,11 +57,33 @@ def session_factory() -> sessionmaker[Session]:
         return _factory[1]
 
 
+def remove_dead_folders() -> None:
+    """Remove the work folders of attempts whose process is gone (never a live one's)."""
+    try:
+        remove_dead_work_folders(
+            work_root(), unowned_older_than_s=float(settings.job_time_limit_s) + 600
+        )
+    except OSError:
+        log.exception("could not remove the work folders of dead attempts")
+
+
+@signals.worker_process_init.connect
+def _after_a_pool_process_died(**_kwargs) -> None:
+    # A new pool process starts at start-up and whenever one was killed: clean up after it.
+    remove_dead_folders()
+
+
 @signals.worker_ready.connect
 def _start_sweeper(**_kwargs) -> None:
     global _sweeper
+    remove_dead_folders()
     if _sweeper is None:
-        _sweeper = Sweeper(session_factory(), dispatcher_from_settings(settings), settings).start()
+        _sweeper = Sweeper(
+            session_factory(),
+            dispatcher_from_settings(settings),
+            settings,
+            expire_uploads=False,  # the service's sweeper does: it holds the part files
+        ).start()
         log.info(
             "job sweeper started (every %.0f s; running jobs stale after %.0f s)",
             settings.job_sweep_interval_s,

@@ -13,10 +13,17 @@ ends) :func:`schedule_registration` creates and sends ONE register job for the t
 it has models of two or more faces, none is queued or running, and a face model is newer
 than the start of the last registration. Redelivered messages find that job and add none.
 
-Idempotent: the job row is claimed with one conditional UPDATE (``backend.queue.claim``)
+Thin: every change of a job row is a call into ``backend.jobs`` (claim, heartbeat, progress,
+retry wait, derived assets, success, failure) and every send goes through
+``backend.dispatch``; this module never edits a job row itself.
+
+Idempotent: the job row is claimed with one compare-and-set UPDATE (``backend.jobs.claim``)
 before any work, so a redelivered or duplicated message finishes the same job or does
-nothing; ``models.job_id`` is unique, so one job never makes two model versions. A thread
-refreshes the heartbeat while the job runs; the sweeper re-sends jobs whose heartbeat stops.
+nothing; a redelivery after a kill takes the job over at once when the dead attempt's
+process is provably gone; ``models.job_id`` is unique, so one job never makes two model
+versions. A thread refreshes the heartbeat every ``job_heartbeat_interval_s``; the sweeper
+re-sends jobs whose worker died. Work folders carry their owner, so the folders of killed
+attempts are removed when a worker starts and by the sweeper.
 
 Retries: only the transient errors named in :data:`TRANSIENT` (storage unavailable, database
 connection lost, network), with exponential backoff; anything else fails the job with a
@@ -29,20 +36,18 @@ import contextlib
 import logging
 import os
 import shutil
-import tempfile
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 from celery.exceptions import SoftTimeLimitExceeded
-from sqlalchemy import exists, func, select
+from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError, OperationalError
 
-from backend import jobs
-from backend.queue import claim, heartbeat
+from backend import dispatch, jobs, queue
 from backend.storage import StorageError, storage_from_settings
-from backend.tables import Job, JobKind, JobState, Model, Scan, Tablet
+from backend.tables import Job, JobKind, JobState, Model, Scan
 from worker import celery_app as capp
 from worker.assets import AssetError
 from worker.assets import derive_assets as write_derived_assets
@@ -52,8 +57,9 @@ log = logging.getLogger("worker.tasks")
 
 MAX_RETRIES = 5
 PROGRESS_MIN_INTERVAL_S = 0.5
-# Set to a file path: while that file exists a running job waits after its first progress
-# report (heartbeat still beating). For maintenance and for the kill-mid-job tests.
+# Set to a file path: while that file exists a running job waits at each progress report
+# after "starting" (its work folder exists by then; heartbeat still beating). For
+# maintenance and for the kill-mid-job tests.
 PAUSE_FILE_ENV = "HAMMURABI_WORKER_PAUSE_FILE"
 
 
@@ -92,11 +98,11 @@ class _Beat:
         self._thread.join(5)
 
     def _run(self) -> None:
-        period_s = max(0.2, capp.settings.job_stale_after_s / 4)
+        period_s = float(capp.settings.job_heartbeat_interval_s)
         while not self._stop.wait(period_s):
             try:
                 with capp.session_factory()() as session:
-                    if not heartbeat(session, job_id=self.job_id, attempt=self.attempt):
+                    if not jobs.heartbeat(session, job_id=self.job_id, attempt=self.attempt):
                         self.lost.set()
                         return
             except Exception:  # the database may be briefly away; the sweeper is lenient
@@ -124,7 +130,8 @@ class _Beat:
         except jobs.JobStateError:
             self.lost.set()
             raise JobLost(f"job {self.job_id} is no longer running") from None
-        _wait_while_paused()
+        if stage != "starting":
+            _wait_while_paused()
 
     def timings(self, timings_s: dict[str, float], stage: str, fraction: float) -> None:
         with capp.session_factory()() as session:
@@ -154,12 +161,16 @@ def _run_job(task, job_id: int, work: Callable[[_Beat, Job], str]) -> str:
             return "missing"
         if job.state in (JobState.succeeded, JobState.failed):
             return job.state.value  # a redelivered message after the job finished
-        attempt = claim(
+        attempt = jobs.claim(
             session, job_id=job_id, running_stale_after_s=capp.settings.job_stale_after_s
         )
         if attempt is None:
-            return "busy"  # running elsewhere with a live heartbeat
+            state = session.scalar(select(Job.state).where(Job.id == job_id))
+            if state in (JobState.succeeded, JobState.failed):
+                return state.value
+            return "busy"  # running elsewhere with a live owner and heartbeat
         job = session.get(Job, job_id, populate_existing=True)
+        session.expunge(job)
     try:
         with _Beat(job_id, attempt) as beat:
             beat.progress("starting", 0.0, force=True)
@@ -175,14 +186,7 @@ def _run_job(task, job_id: int, work: Callable[[_Beat, Job], str]) -> str:
             countdown_s = min(300, 2 ** (task.request.retries + 2))
             log.warning("job %s: transient %r, retry in %s s", job_id, exc, countdown_s)
             with capp.session_factory()() as session:
-                session.execute(
-                    Job.__table__.update()
-                    .where(Job.id == job_id, Job.attempts == attempt)
-                    .values(
-                        state=JobState.queued, stage="waiting to retry", enqueued_at=jobs._now()
-                    )
-                )
-                session.commit()
+                jobs.wait_to_retry(session, job_id=job_id, attempt=attempt)
             raise task.retry(exc=exc, countdown=countdown_s) from None
         log.exception("job %s failed", job_id)
         _fail(job_id, _message(exc))
@@ -205,7 +209,7 @@ def _reconstruct(beat: _Beat, job: Job) -> str:
         if scan is None:
             raise LookupError(f"job {job.id}: its scan is gone")
         bundle_key = scan.bundle_key
-    work = Path(tempfile.mkdtemp(prefix=f"hammurabi-job-{job.id}-"))
+    work = jobs.make_work_folder(jobs.work_root(), job_id=job.id, attempt=job.attempts, kind="job")
     try:
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
@@ -266,7 +270,9 @@ def _derive(beat: _Beat, job: Job) -> str:
         if model is None:
             raise LookupError(f"job {job.id}: scan {job.scan_id} has no model yet")
         prefix, model_id = model.storage_prefix, model.id
-    work = Path(tempfile.mkdtemp(prefix=f"hammurabi-derive-{job.id}-"))
+    work = jobs.make_work_folder(
+        jobs.work_root(), job_id=job.id, attempt=job.attempts, kind="derive"
+    )
     try:
         beat.progress("fetch", 0.1, force=True)
         for name in ("height.npy", "normals.npy", "report.json", "albedo.png", "normals.png"):
@@ -278,15 +284,14 @@ def _derive(beat: _Beat, job: Job) -> str:
         beat.progress("store", 0.9, force=True)
         stats = {name: storage.put_file(f"{prefix}/{name}", work / name) for name in names}
         with capp.session_factory()() as session:
-            row = session.get(Model, model_id, with_for_update=True)
-            row.assets = {
-                **(row.assets or {}),
-                **{n: {"size_bytes": s.size_bytes, "sha256": s.etag} for n, s in stats.items()},
-            }
-            db_job = session.get(Job, job.id, with_for_update=True)
-            db_job.state, db_job.progress, db_job.model_id = JobState.succeeded, 1.0, model_id
-            db_job.finished_at = jobs._now()
-            session.commit()
+            jobs.store_derived_assets(
+                session,
+                job_id=job.id,
+                model_id=model_id,
+                assets={
+                    n: {"size_bytes": s.size_bytes, "sha256": s.etag} for n, s in stats.items()
+                },
+            )
         return "succeeded"
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -307,61 +312,26 @@ def _register(beat: _Beat, job: Job) -> str:
     return run(job.id, capp.session_factory(), storage_from_settings(capp.settings), beat.progress)
 
 
-def dispatcher() -> jobs.Dispatcher:
+def dispatcher() -> queue.Dispatcher:
     """Where follow-up jobs go: the broker of the settings (tests replace this function)."""
-    return jobs.dispatcher_from_settings(capp.settings)
-
-
-def _registration_due(session, tablet_id: int) -> bool:
-    """Models of >= 2 faces, no register job queued/running, and a face model it has not seen.
-
-    A registration reads the models when it starts, so it covers the face models created
-    before its latest ``started_at`` (or ``created_at`` if it never started).
-    """
-    face_models = (
-        select(Model.id).join(Scan, Model.scan_id == Scan.id).where(Model.tablet_id == tablet_id)
-    )
-    faces = session.scalar(
-        select(func.count(func.distinct(Scan.face)))
-        .select_from(Model)
-        .join(Scan, Model.scan_id == Scan.id)
-        .where(Model.tablet_id == tablet_id)
-    )
-    if faces < 2:
-        return False
-    register = select(Job).where(Job.tablet_id == tablet_id, Job.kind == JobKind.register)
-    if session.scalar(
-        select(exists(register.where(Job.state.in_([JobState.queued, JobState.running]))))
-    ):
-        return False
-    last = session.scalar(register.order_by(Job.id.desc()).limit(1))
-    if last is None:
-        return True
-    seen_until = last.started_at or last.created_at
-    return bool(session.scalar(select(exists(face_models.where(Model.created_at > seen_until)))))
+    return queue.dispatcher_from_settings(capp.settings)
 
 
 def schedule_registration(tablet_id: int) -> int | None:
-    """Create and send the tablet's register job if one is due (above); its id, or None.
-
-    The tablet row is locked (PostgreSQL) so two faces finishing at once make one job; on
-    SQLite the second writer fails with OperationalError and is retried. A send that fails
-    leaves the job queued: the sweeper re-sends it.
-    """
+    """Create (``backend.jobs.create_registration_if_due``) and send the tablet's register
+    job if one is due; its id, or None. A send that fails leaves the job awaiting dispatch
+    (``backend.dispatch``): the sweeper sends it later. On SQLite a concurrent writer fails
+    with OperationalError, which the caller retries (transient)."""
     with capp.session_factory()() as session:
-        if session.get(Tablet, tablet_id, with_for_update=True) is None:
+        job = jobs.create_registration_if_due(session, tablet_id=tablet_id)
+        if job is None:
             return None
-        if not _registration_due(session, tablet_id):
-            session.rollback()
-            return None
-        job = jobs.create(session, tablet_id=tablet_id, kind=JobKind.register)
-        session.commit()
-        try:
-            jobs.enqueue(job, dispatcher=dispatcher())
-        except Exception:  # broker down: the job stays queued and the sweeper re-sends it
-            log.exception("tablet %s: register job %s could not be sent", tablet_id, job.id)
-            return job.id
-        jobs.mark_enqueued(session, job_id=job.id)
+        dispatch.dispatch(
+            session,
+            job_id=job.id,
+            dispatcher=dispatcher(),
+            backoff_max_s=capp.settings.job_dispatch_backoff_max_s,
+        )
         log.info("tablet %s: register job %s queued", tablet_id, job.id)
         return job.id
 
@@ -412,8 +382,5 @@ def noop(self, job_id: int) -> str:
 
 def _finish_noop(job_id: int) -> str:
     with capp.session_factory()() as session:
-        db_job = session.get(Job, job_id, with_for_update=True)
-        db_job.state, db_job.progress = JobState.succeeded, 1.0
-        db_job.finished_at = jobs._now()
-        session.commit()
+        jobs.finish_without_model(session, job_id=job_id)
     return "succeeded"

@@ -110,18 +110,19 @@ StaffUser = Annotated[User, Depends(get_staff_user)]
 # --- tablets --------------------------------------------------------------------------------
 
 
-def load_tablet(session: Session, tablet_ref: str | int) -> Tablet | None:
+def load_tablet(session: Session, tablet_ref: str | int, user: User | None) -> Tablet | None:
     ref = str(tablet_ref)
     if ref.isdigit():
         return crud.get_tablet(session, tablet_id=int(ref))
-    return crud.get_tablet_by_p_number(session, p_number=ref)
+    # A P-number may be held by several institutions: the one this user means (crud).
+    return crud.get_tablet_by_p_number(session, p_number=ref, user=user)
 
 
 def require_readable_tablet(
     session: Session, user: User | None, tablet_ref: str | int, *, where: str = "tablet_id"
 ) -> Tablet:
     """The tablet, or a 404 when it does not exist or ``user`` may not see it."""
-    tablet = load_tablet(session, tablet_ref)
+    tablet = load_tablet(session, tablet_ref, user)
     if tablet is None or not crud.can_read_tablet(user, tablet):
         raise not_found(f"tablet {tablet_ref}", where=where)
     return tablet

@@ -1,12 +1,12 @@
 """Reconstruction jobs: ``GET /jobs/{id}`` and ``POST /jobs/{id}/retry`` (staff/admin).
 
 Also the dispatcher dependency: ``app.state.dispatcher`` (tests set a recording one), made
-from settings (Celery, by task name) on first use.
+from settings (Celery, by task name) on first use. Sending is ``backend.dispatch``'s: a
+broker outage leaves the job queued (awaiting dispatch), never failed.
 """
 
 from __future__ import annotations
 
-import logging
 from datetime import datetime
 from typing import Annotated, Any
 
@@ -14,19 +14,17 @@ from fastapi import APIRouter, Depends, Path, Request
 from pydantic import BaseModel
 from sqlalchemy.orm import Session
 
-from backend import jobs
+from backend import dispatch, jobs, queue
 from backend.api.deps import OptionalUser, SessionDep
 from backend.api.models import StorageErrorRoute, check_tablet_access
 from backend.errors import ApiError, not_found
 from backend.tables import Job, JobState
 
-log = logging.getLogger("backend.api.jobs")
 
-
-def get_dispatcher(request: Request) -> jobs.Dispatcher:
+def get_dispatcher(request: Request) -> queue.Dispatcher:
     dispatcher = getattr(request.app.state, "dispatcher", None)
     if dispatcher is None:
-        dispatcher = jobs.dispatcher_from_settings(request.app.state.settings)
+        dispatcher = queue.dispatcher_from_settings(request.app.state.settings)
         request.app.state.dispatcher = dispatcher
     return dispatcher
 
@@ -50,6 +48,8 @@ class JobOut(BaseModel):
     enqueued_at: datetime | None
     started_at: datetime | None
     finished_at: datetime | None
+    # The broker was unreachable when it was sent: it stays queued and is sent again later.
+    awaiting_dispatch: bool = False
 
     @classmethod
     def of(cls, job: Job) -> JobOut:
@@ -69,19 +69,17 @@ class JobOut(BaseModel):
             enqueued_at=job.enqueued_at,
             started_at=job.started_at,
             finished_at=job.finished_at,
+            awaiting_dispatch=job.state == JobState.queued and job.dispatch_after is not None,
         )
 
 
 def send(session: Session, job: Job, dispatcher: Any) -> Job:
-    """Enqueue a committed job; a broker that cannot take it fails the job (retry later)."""
-    try:
-        jobs.enqueue(job, dispatcher=dispatcher)
-    except Exception as exc:  # any broker/transport failure: kept visible on the job
-        log.exception("could not enqueue job %s", job.id)
-        return jobs.mark_failed(
-            session, job_id=job.id, error=f"could not reach the job queue: {type(exc).__name__}"
-        )
-    return jobs.mark_enqueued(session, job_id=job.id)
+    """Send a committed job (``backend.dispatch``): the job after, queued either way.
+
+    Only the first send happens here (its backoff is the first step, 1 s); the sweeper's
+    dispatcher loop sends it later with the configured backoff if the broker was down.
+    """
+    return dispatch.dispatch(session, job_id=job.id, dispatcher=dispatcher)
 
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], route_class=StorageErrorRoute)

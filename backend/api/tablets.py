@@ -174,7 +174,12 @@ def _export(session, query: SearchQuery, user, fmt: str, prefix: str) -> Streami
 
 @router.post("", response_model=TabletOut, status_code=201)
 def create(body: TabletCreate, session: SessionDep, settings: SettingsDep, user: StaffUser):
-    """A new record; staff create records of their own institution."""
+    """A new record; staff create records of their own institution.
+
+    A P-number is unique per institution (docs/api.md "P-numbers"): 409 only when the same
+    institution already has it; another institution's records, private or public, never
+    block it and are never revealed.
+    """
     if user.role == Role.staff:
         if body.institution_id not in (None, user.institution_id):
             raise forbidden("staff create records of their own institution only", "institution_id")

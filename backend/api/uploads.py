@@ -25,7 +25,7 @@ from backend.api.models import StorageDep, StorageErrorRoute, check_tablet_acces
 from backend.api.scans import ScanOut
 from backend.errors import ApiError, not_found
 from backend.storage import storage_error_from_os
-from backend.tables import Upload, UploadState
+from backend.tables import Tablet, Upload, UploadState
 
 WRITE_BUFFER_BYTES = 4 << 20
 UUID_PATTERN = r"^[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}$"
@@ -103,7 +103,8 @@ OwnUpload = Annotated[Upload, Depends(get_own_upload)]
 def create_upload(
     body: UploadCreate, session: SessionDep, user: CurrentUser, settings: SettingsDep
 ):
-    """Start an upload: preallocates ``size_bytes`` (507 if the disk cannot hold it)."""
+    """Start an upload. Nothing is reserved: 413 over the per-upload maximum or the
+    institution's quota, 507 when the disk could not hold it; chunks are checked again."""
     tablet = check_tablet_access(
         session,
         user,
@@ -119,7 +120,7 @@ def create_upload(
         filename=body.filename,
         size_bytes=body.size_bytes,
         uploads_dir=uploads_dir(settings),
-        max_bytes=settings.upload_max_bytes,
+        limits=uploads.UploadLimits.of(settings),
     )
     return UploadOut.of(upload, chunk_size=settings.upload_chunk_size_bytes)
 
@@ -182,18 +183,57 @@ async def put_chunk(
     settings: SettingsDep,
     offset: Annotated[int, Query(ge=0, description="byte offset of the body in the file")],
 ):
-    """Write the raw body at ``offset``; idempotent, any order. Returns the upload's state."""
-    # The checks are done: end the read transaction before a long body transfer.
-    await run_in_threadpool(session.commit)
+    """Write the raw body at ``offset``; idempotent, any order. Returns the upload's state.
+
+    Bytes are written as they arrive; the institution's quota (413) and the free-disk
+    margin (507) are checked before each write, counting only bytes not received before.
+    What was written before a refusal or a disconnect is kept and recorded.
+    """
     if upload.state != UploadState.open:
         raise ApiError(409, f"upload {upload.id} is {upload.state.value}", where="upload_id")
     size = upload.size_bytes
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and offset + int(declared) > size:
         raise _past_end(offset, int(declared), size)
-    path = uploads.part_path(uploads_dir(settings), upload.id)
+    limits = uploads.UploadLimits.of(settings)
+    budget = await run_in_threadpool(_budget_of_upload, session, upload, limits)
+    known = [list(r) for r in upload.ranges or []]
+    if declared is not None and declared.isdigit():
+        refusal = budget.refusal(
+            uploads.new_bytes(known, offset, offset + int(declared)), where="offset"
+        )
+        if refusal is not None:
+            raise refusal
+    # The checks are done: end the read transaction before a long body transfer.
+    await run_in_threadpool(session.commit)
+    directory = uploads_dir(settings)
+    path = uploads.part_path(directory, upload.id)
     fd = await run_in_threadpool(_open_part, path)
-    pos, buffer, disconnected = offset, bytearray(), False
+    pos, buffer, disconnected, refusal = offset, bytearray(), False, None
+
+    async def flush() -> None:
+        nonlocal pos, refusal
+        refusal = budget.refusal(
+            uploads.new_bytes(known, offset, pos + len(buffer)), where="offset"
+        )
+        if refusal is not None:  # write what still fits, then stop
+            del buffer[budget.fitting_prefix(known, offset, pos, len(buffer)) :]
+        if buffer:
+            try:
+                await run_in_threadpool(
+                    uploads.check_free_disk,
+                    directory,
+                    len(buffer),
+                    min_free_bytes=limits.min_free_bytes,
+                )
+            except ApiError as exc:
+                refusal = exc
+                buffer.clear()
+        if buffer:
+            await run_in_threadpool(_pwrite_all, fd, bytes(buffer), pos)
+            pos += len(buffer)
+        buffer.clear()
+
     try:
         try:
             async for piece in request.stream():
@@ -201,14 +241,13 @@ async def put_chunk(
                     raise _past_end(offset, pos + len(buffer) + len(piece) - offset, size)
                 buffer += piece
                 if len(buffer) >= WRITE_BUFFER_BYTES:
-                    await run_in_threadpool(_pwrite_all, fd, bytes(buffer), pos)
-                    pos += len(buffer)
-                    buffer.clear()
+                    await flush()
+                    if refusal is not None:
+                        break  # a client lying about its size is cut off here
         except ClientDisconnect:
             disconnected = True  # keep what arrived: the client resends only the rest
-        if buffer:
-            await run_in_threadpool(_pwrite_all, fd, bytes(buffer), pos)
-            pos += len(buffer)
+        if buffer and refusal is None:
+            await flush()
         await run_in_threadpool(_fsync, fd)
     finally:
         os.close(fd)
@@ -220,9 +259,18 @@ async def put_chunk(
             start=offset,
             end=pos,
         )
+    if refusal is not None:
+        raise refusal
     if disconnected:
         return Response(status_code=400)
     return UploadOut.of(upload, chunk_size=settings.upload_chunk_size_bytes)
+
+
+def _budget_of_upload(session, upload: Upload, limits: uploads.UploadLimits) -> uploads.Budget:
+    tablet = session.get(Tablet, upload.tablet_id)
+    if tablet is None:  # deleted with its uploads (ON DELETE CASCADE) meanwhile
+        raise not_found(f"upload {upload.id}", where="upload_id")
+    return uploads.budget_of(session, tablet=tablet, limits=limits)
 
 
 def _past_end(offset: int, length: int, size: int) -> ApiError:
@@ -257,6 +305,7 @@ def complete(
         uploads_dir=uploads_dir(settings),
         storage=storage,
         user=user,
+        api_prefix=settings.api_prefix,
     )
     job = done.job
     if done.created:

@@ -57,6 +57,16 @@ def _unique(prefix: str) -> str:
     return f"{prefix}-{uuid.uuid4().hex[:8]}"
 
 
+_P_NUMBERS = iter(range(900_000, 1_000_000))
+
+
+def _p_number_held_privately_by_a(world, _role):
+    """A body registering a fresh P-number that a new private record of A already holds."""
+    p_number = f"P{next(_P_NUMBERS)}"
+    world.new_tablet(institution="a", p_number=p_number)
+    return {"designation": _unique("New"), "p_number": p_number}
+
+
 def _fresh_token_of_staff_own(world, _role):
     from backend import crud
 
@@ -136,6 +146,11 @@ MATRIX: dict[str, list[Case]] = {
             expect(401, 403, 403, 201, 201),
             json=lambda w, role: {"designation": _unique("New"), "institution_id": w.institution_b},
         ),
+        Case(
+            "a P-number A holds privately: 409 only for A (no leak); B registers its own",
+            expect(401, 403, 409, 201, 201),
+            json=_p_number_held_privately_by_a,
+        ),
     ],
     "GET /api/v1/tablets/{tablet_id}": [
         Case(
@@ -195,7 +210,7 @@ MATRIX: dict[str, list[Case]] = {
 
 
 def _upload_of_private_a(world, _role):
-    """An open upload (with its preallocated part file) of the private tablet of A."""
+    """An open upload (with its empty part file) of the private tablet of A."""
     from backend import crud, uploads
     from backend.tables import User
 
@@ -207,7 +222,7 @@ def _upload_of_private_a(world, _role):
             filename="scan.zip",
             size_bytes=4,
             uploads_dir=world.settings.data_dir / "uploads",
-            max_bytes=world.settings.upload_max_bytes,
+            limits=uploads.UploadLimits.of(world.settings),
         )
         return {"upload_id": upload.id}
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from datetime import timedelta
 from pathlib import Path
 
 import pytest
@@ -216,7 +217,7 @@ def test_public_job_staff_of_others_get_403_on_retry(client, world, app):
     )
 
 
-def test_a_dead_broker_fails_the_job_visibly(client, world, app):
+def test_a_dead_broker_leaves_the_retried_job_queued_awaiting_dispatch(client, world, app):
     class DeadBroker:
         def send_task(self, name, *, args, task_id):
             raise ConnectionRefusedError("redis down")
@@ -227,8 +228,21 @@ def test_a_dead_broker_fails_the_job_visibly(client, world, app):
         jobs.mark_failed(session, job_id=job_id, error="first try failed")
     response = client.post(f"{API}/jobs/{job_id}/retry", headers=world.headers("admin"))
     assert response.status_code == 200
-    assert response.json()["state"] == "failed"
-    assert "job queue" in response.json()["error"]
+    body = response.json()
+    assert body["state"] == "queued" and body["error"] is None
+    assert body["awaiting_dispatch"] and body["stage"] == jobs.AWAITING_DISPATCH
+    assert body["enqueued_at"] is None
+    # The broker is back: the sweeper's dispatcher loop sends it once its backoff passed.
+    from backend.dispatch import dispatch_due
+
+    sent = RecordingDispatcher()
+    with world.session() as session:
+        later = jobs.now_utc() + timedelta(seconds=2)
+        assert dispatch_due(session, sent, backoff_max_s=60, now=later) == [job_id]
+    assert sent.sent == [(jobs.RECONSTRUCT_TASK, [job_id], f"job-{job_id}-attempt-1")]
+    body = client.get(f"{API}/jobs/{job_id}", headers=world.headers("admin")).json()
+    assert body["state"] == "queued" and not body["awaiting_dispatch"]
+    assert body["enqueued_at"] is not None and body["stage"] is None
 
 
 def test_celery_dispatcher_sends_by_name_to_the_queue(monkeypatch):

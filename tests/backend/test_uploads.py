@@ -365,10 +365,11 @@ def _no_space(*args, **kwargs):
 
 
 def test_full_disk_at_creation_is_507_and_keeps_nothing(client, world, app, monkeypatch):
-    monkeypatch.setattr(uploads_mod.os, "posix_fallocate", _no_space)
+    monkeypatch.setattr(uploads_mod.os, "open", _no_space)
     response = create(client, world, b"x" * 1000)
     assert response.status_code == 507
     assert response.json() == {"detail": "storage is full: nothing was stored", "where": "storage"}
+    monkeypatch.undo()
     assert list((app.state.settings.data_dir / "uploads").iterdir()) == []
     with world.session() as session:
         assert session.scalars(select(Upload)).all() == []

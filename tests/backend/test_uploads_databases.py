@@ -96,6 +96,7 @@ def test_two_completions_of_one_upload_make_one_scan(client, world, app, tmp_pat
                     uploads_dir=app.state.settings.data_dir / "uploads",
                     storage=store,
                     user=user,
+                    api_prefix=app.state.settings.api_prefix,
                 )
                 results.append((done.scan.id, done.job.id, done.created))
             except Exception as exc:  # reported below

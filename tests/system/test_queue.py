@@ -4,20 +4,38 @@ Parametrized over a private Redis (``redis-server --save "" --appendonly no`` on
 a restart loses every message) and the embedded broker (SQLite, no server). One scenario per
 broker, in phases, so the service and workers start once:
 
-1. two workers; job 1 is uploaded and held at its first progress report (the pause file);
-   a duplicate message of job 1 is sent: the idle worker finds it running with a live
-   heartbeat and does nothing ('busy'); job 2 is uploaded and taken by the other worker;
-2. one worker is SIGKILLed (its whole process group) while holding a job; the pause is
-   lifted; the survivor finishes its job, its sweeper finds the dead worker's job stale and
-   re-sends it: both jobs succeed, each with exactly one model (one version per job);
+1. two workers; job 1 is uploaded and held at its first progress report after "starting"
+   (the pause file); a duplicate message of job 1 is sent: the idle worker finds it running
+   with a live owner and heartbeat and does nothing ('busy'); job 2 is uploaded and taken by
+   the other worker;
+2. one worker is SIGKILLed (its whole process group) while holding a job; the survivor's
+   sweeper finds that job's process dead and requeues it within seconds (its heartbeat
+   would only be stale after 15 s); the pause is lifted; the survivor finishes both jobs,
+   each with exactly one model (one version per job);
 3. with no worker running, job 3 is queued, then the broker loses its message (Redis
    restarted without persistence / the embedded broker's message rows removed); a new
    worker's sweeper re-sends it at start-up: it succeeds.
+
+And with Redis only (the last test): a broker outage while an upload completes, then a
+killed pool process:
+
+a. Redis is down when an upload completes: the API answers 201 and the job stays queued,
+   *awaiting dispatch* (never failed). Redis comes back: the service's sweeper sends it
+   (backoff of at most 2 s here) before any worker exists.
+b. A worker takes it and is held mid-job (the pause file, after its work folder exists); its
+   pool process is SIGKILLed. Celery redelivers the message (``task_reject_on_worker_lost``)
+   and the claim takes the job over AT ONCE because the dead attempt's process is gone (the
+   heartbeat is still fresh: stale only after 15 s, the default). The killed attempt's work
+   folder is removed; the job succeeds with exactly one model.
+
+Bounded: about 30 s on a shared 2-core machine.
 """
 
 from __future__ import annotations
 
+import os
 import shutil
+import signal
 import sqlite3
 import subprocess
 import time
@@ -29,9 +47,10 @@ import pytest
 from backend.jobs import RECONSTRUCT_TASK, CeleryDispatcher
 from worker.demo import LocalLibrary, bundle_zip_as_new_scan, free_port
 
-# Short periods so the sweeper acts within seconds (defaults are minutes).
+# Short periods so the sweeper acts within seconds. The heartbeat keeps its defaults (5 s,
+# stale after 15 s): a killed worker's job must be recovered sooner than that, because its
+# process is found dead.
 FAST_SWEEP = {
-    "HAMMURABI_JOB_STALE_AFTER_S": "3",
     "HAMMURABI_JOB_QUEUED_STALE_AFTER_S": "3",
     "HAMMURABI_JOB_SWEEP_INTERVAL_S": "1",
 }
@@ -157,6 +176,20 @@ def test_jobs_survive_killed_workers_duplicates_and_a_lost_broker(
 
         # Phase 2: SIGKILL one worker mid-job; the other finishes both jobs.
         library.kill_worker(workers[0])
+        t0 = time.monotonic()
+        _wait(
+            lambda: any(
+                r["state"] == "queued" or r["attempts"] >= 2
+                for r in (_job(library, job1), _job(library, job2))
+            ),
+            timeout_s=30,
+            what="the killed worker's job to be requeued",
+        )
+        recovered_s = time.monotonic() - t0
+        assert recovered_s < 10, recovered_s  # sooner than a stale heartbeat (15 s)
+        print(
+            f"\n{broker}: the killed worker's job was requeued {recovered_s:.1f} s after the kill"
+        )
         (tmp_path / "pause").unlink()
         rows = library.wait_jobs([job1, job2], timeout_s=JOB_TIMEOUT_S)
         assert [r["state"] for r in rows] == ["succeeded", "succeeded"], rows
@@ -198,3 +231,90 @@ def test_jobs_survive_killed_workers_duplicates_and_a_lost_broker(
         library.stop()
         if redis is not None:
             redis.stop()
+
+
+@pytest.mark.redis
+@pytest.mark.slow
+def test_a_job_completed_during_an_outage_is_sent_later_and_survives_a_killed_pool_process(
+    tmp_path, tiny_bundle_zip
+):
+    redis = Redis(tmp_path)
+    redis.start()
+    work_root = tmp_path / "work"
+    work_root.mkdir()
+    env = {
+        "HAMMURABI_BROKER_URL": redis.url,
+        "HAMMURABI_JOB_SWEEP_INTERVAL_S": "0.5",
+        "HAMMURABI_JOB_DISPATCH_BACKOFF_MAX_S": "2",
+        "HAMMURABI_WORKER_PAUSE_FILE": str(tmp_path / "pause"),
+        "TMPDIR": str(work_root),  # where the workers make their work folders
+    }
+    library = LocalLibrary(tmp_path / "data", env=env)
+    try:
+        library.cli("migrate")
+        library.create_admin_token()
+        library.start_server()
+        with library.client() as http:
+            tablet = http.post("/tablets", json={"designation": "Outage", "is_public": True})
+            tablet_id = tablet.raise_for_status().json()["id"]
+
+        # a. The broker is down while the upload completes.
+        redis.stop()
+        done = library.upload_bundle_zip(
+            bundle_zip_as_new_scan(tiny_bundle_zip, 1, tmp_path), tablet_id=tablet_id
+        )
+        job_id = done["job"]["id"]
+        assert done["job"]["state"] == "queued" and done["job"]["awaiting_dispatch"]
+        assert done["job"]["error"] is None
+        time.sleep(2)  # a few failed sends by the service's sweeper
+        row = _job(library, job_id)
+        assert row["state"] == "queued" and row["awaiting_dispatch"], row
+        redis.start()  # same port, empty: the message must come from the job row
+        t0 = time.monotonic()
+        _wait(
+            lambda: not _job(library, job_id)["awaiting_dispatch"],
+            timeout_s=20,
+            what="the sweeper to send the job once the broker is back",
+        )
+        sent_after_s = time.monotonic() - t0
+        assert redis.queue_length("reconstruct") == 1
+        assert sent_after_s < 10, sent_after_s
+
+        # b. A worker takes it; its pool process is killed mid-job.
+        (tmp_path / "pause").touch()
+        library.start_worker("a")
+        _wait(
+            lambda: list(work_root.glob(f"hammurabi-job-{job_id}-a1-*")),
+            timeout_s=120,
+            what="attempt 1 to make its work folder",
+        )
+        row = _job(library, job_id)
+        assert row["state"] == "running" and row["attempts"] == 1
+        (folder,) = work_root.glob(f"hammurabi-job-{job_id}-a1-*")
+        host, _ns, pid, _start = (folder / ".owner").read_text().split("/")
+        assert int(pid) != library.workers[0].pid  # the pool process, not the main one
+        os.kill(int(pid), signal.SIGKILL)
+        t0 = time.monotonic()
+        _wait(
+            lambda: _job(library, job_id)["attempts"] >= 2,
+            timeout_s=30,
+            what="the redelivered message to take the job over",
+        )
+        takeover_s = time.monotonic() - t0
+        assert takeover_s < 10, takeover_s  # the heartbeat would only be stale after 15 s
+        _wait(lambda: not folder.exists(), timeout_s=15, what="the dead attempt's folder")
+        (tmp_path / "pause").unlink()
+        (row,) = library.wait_jobs([job_id], timeout_s=180)
+        assert row["state"] == "succeeded" and row["attempts"] == 2, row
+        assert [m["id"] for m in _models_of_job(library, done["scan"]["id"], job_id)] == [
+            row["model_id"]
+        ]
+        assert not list(work_root.glob(f"hammurabi-job-{job_id}-*"))
+        print(
+            f"\nsent {sent_after_s:.1f} s after the broker returned; "
+            f"redelivery took over {takeover_s:.1f} s after the kill"
+        )
+    finally:
+        library.stop()
+        redis.stop()
+        Path(tmp_path / "pause").unlink(missing_ok=True)

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import hashlib
 import shutil
+import subprocess
+import sys
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -134,3 +136,51 @@ def test_only_named_transient_errors_are_retried():
     assert not tasks.is_transient(ObjectNotFound("k"))
     assert not tasks.is_transient(StorageError("disk full", status_code=507))
     assert not tasks.is_transient(ValueError("bad bundle"))
+
+
+def test_a_redelivery_after_a_kill_takes_over_at_once_despite_a_fresh_heartbeat(env):
+    job_id = _scan_job(env)
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    owner = jobs.process_owner(child.pid)
+    child.kill()
+    child.wait(10)
+    with capp.session_factory()() as session:
+        job = session.get(Job, job_id)
+        job.state, job.attempts, job.heartbeat_at = JobState.running, 1, datetime.now(UTC)
+        job.claimed_by = owner  # the killed attempt's process
+        session.commit()
+    # Not 'busy': the job runs again (and fails cleanly: this bundle cannot be read).
+    assert tasks.reconstruct_scan.apply(args=[job_id]).get() == "failed"
+    job = _row(job_id)
+    assert job.attempts == 2 and job.claimed_by == jobs.process_owner()
+    assert job.error.startswith("reconstruction:")
+
+
+def test_a_transient_error_hands_the_job_back_to_the_queue_for_its_retry(env, monkeypatch):
+    job_id = _scan_job(env)
+
+    def unavailable(settings):
+        raise StorageError("storage is restarting", status_code=503)
+
+    monkeypatch.setattr(tasks, "storage_from_settings", unavailable)
+    waits = []
+    real_wait = jobs.wait_to_retry
+
+    def recording_wait(session, *, job_id, attempt):
+        waits.append((attempt, real_wait(session, job_id=job_id, attempt=attempt)))
+        waits.append(_state(session, job_id))
+        return waits[-2][1]
+
+    monkeypatch.setattr(jobs, "wait_to_retry", recording_wait)
+    monkeypatch.setattr(tasks, "MAX_RETRIES", 1)
+    # Eager mode runs the retry at once: attempt 1 waits, attempt 2 is the last and fails.
+    assert tasks.reconstruct_scan.apply(args=[job_id]).get() == "failed"
+    assert waits == [(1, True), (JobState.queued, jobs.WAITING_TO_RETRY)]
+    job = _row(job_id)
+    assert job.state == JobState.failed and job.attempts == 2
+    assert "storage is restarting" in job.error
+
+
+def _state(session, job_id):
+    job = session.get(Job, job_id, populate_existing=True)
+    return job.state, job.stage

@@ -11,7 +11,7 @@ from sqlalchemy import select
 
 from backend import jobs
 from backend.db import migrate
-from backend.queue import claim
+from backend.jobs import claim
 from backend.settings import Settings
 from backend.storage import storage_from_settings
 from backend.tables import Job, JobKind, JobState, Scan, Tablet

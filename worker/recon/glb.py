@@ -1,7 +1,8 @@
 """model.glb for the browser: a decimated grid mesh with full-resolution textures.
 
 - Geometry: `mesh.grid_mesh(..., step)` with the step chosen so that the mesh has at most
-  `max_triangles` triangles; the same millimetre coordinates as mesh.ply (SCAN_BUNDLE.md frame).
+  `max_triangles` triangles; the same millimetre coordinates as mesh.ply (SCAN_BUNDLE.md frame)
+  under one root node that takes them to glTF's metres, +Y up, facing +Z (`gltf_frame`).
 - TEXCOORD_0 is the image grid, u = (c + 0.5)/W, v = (r + 0.5)/H (docs/architecture.md), so any
   image-grid texture maps onto the mesh.
 - baseColorTexture: the sRGB albedo (H, W).
@@ -19,6 +20,7 @@ import cv2
 import numpy as np
 import pygltflib
 
+from worker.recon.gltf_frame import gltf_root_matrix, root_node
 from worker.recon.mesh import grid_mesh, vertex_normals
 
 __all__ = ["decimation_step", "glb_bytes", "tangent_space_normals"]
@@ -229,7 +231,10 @@ def glb_bytes(
         asset=pygltflib.Asset(version="2.0", generator="Digital Hammurabi worker"),
         scene=0,
         scenes=[pygltflib.Scene(nodes=[0])],
-        nodes=[pygltflib.Node(mesh=0, name="tablet")],
+        nodes=[
+            root_node(gltf_root_matrix(v.min(axis=0), v.max(axis=0)), [1], name="scan frame"),
+            pygltflib.Node(mesh=0, name="tablet"),
+        ],
         meshes=[
             pygltflib.Mesh(
                 primitives=[

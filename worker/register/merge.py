@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
+from worker.recon.gltf_frame import wrap_scene_in_gltf_frame
 from worker.register.o3d import o3d, point_cloud, transform_points
 from worker.register.pointcloud import ScanCloud
 
@@ -101,10 +102,11 @@ def grid_mesh(
 
 def scene_glb(meshes: dict[str, trimesh.Trimesh], transforms: dict[str, np.ndarray]) -> bytes:
     """glTF 2.0 binary with one node per scan named by its label, each carrying its scan →
-    tablet transform (mm), so that a viewer can show or hide each face."""
+    tablet transform (mm), so that a viewer can show or hide each face; all under one root node
+    in glTF's convention (metres, +Y up, the tablet's frame facing +Z: `gltf_frame`)."""
     if set(meshes) != set(transforms):
         raise ValueError("meshes and transforms must have the same labels")
     scene = trimesh.Scene()
     for label, mesh in meshes.items():
         scene.add_geometry(mesh, node_name=label, geom_name=label, transform=transforms[label])
-    return scene.export(file_type="glb")
+    return wrap_scene_in_gltf_frame(scene.export(file_type="glb"))

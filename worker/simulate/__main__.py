@@ -1,6 +1,7 @@
 """CLI: ``python -m worker.simulate --out DIR [--seed N] [--size WxH] [--face F] [--preset P]
-[--noise N] [--physics NAME|random] [--physics-seed N] [--zip]``. Exit 0 on success, 2 on
-bad arguments (clear message, nothing written)."""
+[--noise N] [--physics NAME|random] [--physics-seed N] [--zip]
+[--renderer native|mitsuba [--spp N] [--max-depth N]]``. Exit 0 on success, 2 on bad
+arguments (clear message, nothing written)."""
 
 from __future__ import annotations
 
@@ -53,7 +54,40 @@ def build_parser() -> argparse.ArgumentParser:
         help="seed of the random physics draw (default: --seed)",
     )
     p.add_argument("--zip", action="store_true", help="write bundle.zip instead of bundle/")
+    p.add_argument(
+        "--renderer",
+        choices=("native", "mitsuba"),
+        default="native",
+        help="light transport: our forward model, or Mitsuba 3's path tracer (docs/simulator.md)",
+    )
+    p.add_argument("--spp", type=int, default=None, help="mitsuba: samples per pixel (16)")
+    p.add_argument(
+        "--max-depth", type=int, default=None, help="mitsuba: path length (3: one bounce)"
+    )
     return p
+
+
+def _render_mitsuba(args: argparse.Namespace):
+    from worker.simulate.mitsuba import MitsubaUnavailable, render_scan_mitsuba
+
+    try:
+        return render_scan_mitsuba(
+            args.out,
+            seed=args.seed,
+            size=args.size,
+            face=args.face,
+            preset=args.preset,
+            noise=args.noise,
+            mesh=args.mesh,
+            physics=args.physics,
+            physics_seed=args.physics_seed,
+            spp=16 if args.spp is None else args.spp,
+            max_depth=3 if args.max_depth is None else args.max_depth,
+            as_zip=args.zip,
+            progress=True,
+        )
+    except MitsubaUnavailable as exc:
+        raise ValueError(str(exc)) from None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -62,20 +96,25 @@ def main(argv: list[str] | None = None) -> int:
         build_parser().error(f"argument --seed: must be >= 0, got {args.seed}")
     if args.physics_seed is not None and args.physics_seed < 0:
         build_parser().error(f"argument --physics-seed: must be >= 0, got {args.physics_seed}")
+    if args.renderer != "mitsuba" and (args.spp is not None or args.max_depth is not None):
+        build_parser().error("arguments --spp and --max-depth need --renderer mitsuba")
     try:
-        result = simulate_scan(
-            args.out,
-            seed=args.seed,
-            size=args.size,
-            face=args.face,
-            preset=args.preset,
-            noise=args.noise,
-            as_zip=args.zip,
-            progress=True,
-            mesh=args.mesh,
-            physics=args.physics,
-            physics_seed=args.physics_seed,
-        )
+        if args.renderer == "mitsuba":
+            result = _render_mitsuba(args)
+        else:
+            result = simulate_scan(
+                args.out,
+                seed=args.seed,
+                size=args.size,
+                face=args.face,
+                preset=args.preset,
+                noise=args.noise,
+                as_zip=args.zip,
+                progress=True,
+                mesh=args.mesh,
+                physics=args.physics,
+                physics_seed=args.physics_seed,
+            )
     except (ValueError, FileExistsError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -4,7 +4,18 @@
  */
 import * as api from '../api.js';
 import { el, showError } from '../dom.js';
-import { apiParams, FACETS, formatSearch, pageList, parseSearch, SORTS, toggleFacet } from './searchState.js';
+import {
+  activeChips,
+  apiParams,
+  clearSearch,
+  FACETS,
+  formatSearch,
+  pageList,
+  parseSearch,
+  sameFacetValue,
+  SORTS,
+  toggleFacet,
+} from './searchState.js';
 
 const $ = (id) => document.getElementById(id);
 let state = parseSearch(window.location.search);
@@ -12,10 +23,10 @@ let controller = null;
 
 for (const [value, label] of SORTS) $('sort').append(el('option', { value }, label));
 
-function go(next, { push = true } = {}) {
+function go(next, { push = true, clicked = null } = {}) {
   state = next;
   if (push) history.pushState(null, '', `${window.location.pathname}${formatSearch(state)}`);
-  run();
+  run(clicked);
 }
 
 function facetLabel(key, value) {
@@ -23,27 +34,58 @@ function facetLabel(key, value) {
   return value === null || value === '' ? '(unknown)' : String(value);
 }
 
-function renderFacets(facets) {
+function renderFacets(facets, clicked) {
   const box = $('facets');
   box.replaceChildren();
   for (const [key, title] of FACETS) {
-    const values = facets?.[key] ?? [];
+    let values = (facets?.[key] ?? []).filter(({ value }) => value !== null);
     const active = state.filters[key];
     if (!values.length && active === undefined) continue;
+    if (active !== undefined) {
+      // The chosen value heads its group, so it stays in sight after the click.
+      const chosen = values.find(({ value }) => sameFacetValue(value, active)) ?? { value: active, count: 0 };
+      values = [chosen, ...values.filter((v) => v !== chosen)];
+    }
     const list = el('ul', {});
     for (const { value, count } of values) {
-      if (value === null) continue;
-      const on = active === String(value);
+      const on = active !== undefined && sameFacetValue(active, value);
       const button = el(
         'button',
         { type: 'button', class: on ? 'facet on' : 'facet', 'aria-pressed': String(on), 'data-facet': key, 'data-value': String(value) },
         el('span', { class: 'facet-value' }, facetLabel(key, value)),
         el('span', { class: 'count' }, count),
       );
-      button.addEventListener('click', () => go(toggleFacet(state, key, value)));
+      button.addEventListener('click', () => go(toggleFacet(state, key, value), { clicked: key }));
       list.append(el('li', {}, button));
     }
-    box.append(el('section', { class: 'facet-group' }, el('h2', {}, title), list));
+    const group = el('section', { class: 'facet-group', 'data-group': key }, el('h2', {}, title), list);
+    box.append(group);
+    if (clicked === key) group.scrollIntoView({ block: 'nearest' });
+  }
+}
+
+function renderChips() {
+  const box = $('chips');
+  const chips = activeChips(state);
+  box.replaceChildren();
+  box.hidden = !chips.length;
+  for (const chip of chips) {
+    const button = el(
+      'button',
+      { type: 'button', class: 'chip', 'data-chip': chip.key, title: `Remove this filter (${chip.title})` },
+      el('span', { class: 'chip-title' }, `${chip.title}:`),
+      ' ',
+      el('span', { class: 'chip-label' }, chip.label),
+      el('span', { class: 'chip-x', 'aria-hidden': 'true' }, ' ×'),
+    );
+    button.setAttribute('aria-label', `Remove ${chip.title}: ${chip.label}`);
+    button.addEventListener('click', () => go(chip.next));
+    box.append(button);
+  }
+  if (chips.length > 1) {
+    const clear = el('button', { type: 'button', class: 'chip clear', 'data-chip': 'all' }, 'Clear all');
+    clear.addEventListener('click', () => go(clearSearch(state)));
+    box.append(clear);
   }
 }
 
@@ -120,7 +162,7 @@ function renderResults(page) {
   $('export-jsonl').href = api.searchUrl(params, 'jsonl');
 }
 
-async function run() {
+async function run(clicked = null) {
   $('q').value = state.q;
   $('sort').value = state.sort;
   controller?.abort();
@@ -129,7 +171,8 @@ async function run() {
   try {
     const page = await api.searchTablets(apiParams(state), { signal: controller.signal });
     showError($('search-error'), '');
-    renderFacets(page.facets);
+    renderChips();
+    renderFacets(page.facets, clicked);
     renderResults(page);
     document.body.dataset.total = String(page.total);
   } catch (err) {

@@ -67,9 +67,38 @@ export function apiParams(state) {
 export function toggleFacet(state, key, value) {
   const filters = { ...state.filters };
   const v = String(value);
-  if (filters[key] === v) delete filters[key];
+  if (filters[key] !== undefined && sameFacetValue(filters[key], v)) delete filters[key];
   else filters[key] = v;
   return { ...state, filters, page: 1 };
+}
+
+/** Whether facet value `a` is `b` (values are grouped regardless of case by the API). */
+export function sameFacetValue(a, b) {
+  return String(a).toLowerCase() === String(b).toLowerCase();
+}
+
+/**
+ * The search's active parts as removable chips, in reading order: the text, then each filter
+ * in the order of FACETS. `next` is the state without that part.
+ * @returns {{key: string, title: string, label: string, next: object}[]}
+ */
+export function activeChips(state) {
+  const chips = [];
+  if (state.q) chips.push({ key: 'q', title: 'Text', label: `“${state.q}”`, next: { ...state, q: '', page: 1 } });
+  for (const [key, title] of FACETS) {
+    const v = state.filters[key];
+    if (v === undefined) continue;
+    const filters = { ...state.filters };
+    delete filters[key];
+    const label = key === 'has_3d' ? (v === 'true' ? 'with 3-D model' : 'without 3-D model') : v;
+    chips.push({ key, title, label, next: { ...state, filters, page: 1 } });
+  }
+  return chips;
+}
+
+/** The state with no text and no filter (sort kept). */
+export function clearSearch(state) {
+  return { ...state, q: '', filters: {}, page: 1 };
 }
 
 /** Page numbers to offer around the current page ("…" as null), for `total` results. */

@@ -125,6 +125,13 @@ export function robustRange(values) {
 async function glbToGeometry(buffer) {
   const gltf = await new GLTFLoader().parseAsync(buffer, '');
   gltf.scene.updateMatrixWorld(true);
+  // model.glb is in glTF's convention (metres, +Y up) through one root node that records the
+  // scan frame in its extras (SCAN_BUNDLE.md); the viewer works in scan-frame millimetres, so
+  // that node's transform is undone. Older GLBs without it are in scan-frame mm already.
+  const toScanFrame = new THREE.Matrix4();
+  gltf.scene.traverse((obj) => {
+    if (obj.userData?.scan_frame) toScanFrame.copy(obj.matrixWorld).invert();
+  });
   const geometries = [];
   const partNames = [];
   let glbAlbedo = null;
@@ -132,7 +139,7 @@ async function glbToGeometry(buffer) {
   gltf.scene.traverse((obj) => {
     if (!obj.isMesh) return;
     const g = obj.geometry.clone();
-    g.applyMatrix4(obj.matrixWorld);
+    g.applyMatrix4(new THREE.Matrix4().multiplyMatrices(toScanFrame, obj.matrixWorld));
     for (const name of Object.keys(g.attributes)) {
       if (!['position', 'normal', 'uv'].includes(name)) g.deleteAttribute(name);
     }

@@ -27,6 +27,8 @@ import pygltflib
 from PIL import Image
 from scipy.ndimage import gaussian_filter
 
+from worker.recon.gltf_frame import gltf_root_matrix, root_node
+
 WIDTH_PX = 480
 HEIGHT_PX = 320
 PIXEL_SIZE_UM = 100.0
@@ -113,7 +115,15 @@ def _glb(positions: np.ndarray, normals: np.ndarray, uvs: np.ndarray, faces: np.
         asset=pygltflib.Asset(version="2.0", generator="digital-hammurabi browser-test fixture"),
         scene=0,
         scenes=[pygltflib.Scene(nodes=[0])],
-        nodes=[pygltflib.Node(mesh=0, name="tablet")],
+        # glTF's convention as model.glb has it: a root node over the scan-frame mm mesh.
+        nodes=[
+            root_node(
+                gltf_root_matrix(positions.min(axis=0), positions.max(axis=0)),
+                [1],
+                name="scan frame",
+            ),
+            pygltflib.Node(mesh=0, name="tablet"),
+        ],
         meshes=[
             pygltflib.Mesh(
                 primitives=[

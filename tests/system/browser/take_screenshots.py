@@ -119,6 +119,11 @@ def main(argv: list[str] | None = None) -> None:
                 page.wait_for_load_state("networkidle")
                 page.screenshot(path=args.out / "library.png")
 
+                page.goto(f"{lib.url}/index.html?q=ur%20iii&period=Ur%20III")
+                page.wait_for_selector(".chip[data-chip='period']")
+                page.wait_for_load_state("networkidle")
+                page.screenshot(path=args.out / "library-filter-chips.png")
+
                 shown = "real" if real else "v2"
                 tablet = "P999003" if real else "P999001"
                 page.goto(

@@ -55,3 +55,27 @@ def test_tablet_page_lists_versions_downloads_and_links(page, library, tools):
     hrefs = page.locator("#links a").evaluate_all("as => as.map(a => a.getAttribute('href'))")
     assert any(h.endswith("/iiif/manifest.json") for h in hrefs)
     assert "succeeded" in page.locator("#scans").inner_text()
+
+
+def test_free_text_period_and_removable_filter_chips(page, library, tmp_path):
+    page.goto(f"{library.url}/index.html?q=ur%20iii")
+    page.wait_for_selector("body[data-total]")
+    # "ur iii" is the period of P999002, not a word of its designation or museum number.
+    assert "P999002" in page.locator(".card .designation").all_inner_texts()
+    page.locator("button[data-facet='period'][data-value='Ur III']").click()
+    page.wait_for_selector(".chip[data-chip='period']")
+    chips = page.locator(".chip").all_inner_texts()
+    assert any("ur iii" in c for c in chips) and any("Ur III" in c for c in chips)
+    assert any("Clear all" in c for c in chips)
+    # The chosen value heads its facet group and is visible.
+    first = page.locator("[data-group='period'] button").first
+    assert first.get_attribute("data-value") == "Ur III"
+    assert first.get_attribute("aria-pressed") == "true"
+    assert first.is_visible()
+    page.screenshot(path=str(tmp_path / "library-filter-chips.png"))
+    page.locator(".chip[data-chip='q']").click()
+    page.wait_for_function("!document.querySelector(\".chip[data-chip='q']\")")
+    assert "q=" not in page.url and "period=Ur" in page.url
+    page.locator(".chip[data-chip='period']").click()
+    page.wait_for_function("document.getElementById('chips').hidden")
+    assert "period=" not in page.url
