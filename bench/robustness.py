@@ -205,6 +205,11 @@ def physics_summary(sim: Path, scan: Scan) -> str:
         return ", ".join(bits + [f"noise {extra[0]}"] if extra else bits)
     p = doc["physics"]
     out = []
+    if doc.get("renderer"):  # a renderer that also records its scene (Mitsuba)
+        clay = doc.get("clay") or {}
+        out.append(f"{doc['renderer']} {doc.get('spp', '?')} spp")
+        if clay:
+            out.append(f"{clay.get('model', 'clay')} α {clay.get('alpha', float('nan')):.2g}")
 
     def add(cond, text):  # text is a function: its fields may be None when cond is false
         if cond:
