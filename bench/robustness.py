@@ -85,7 +85,9 @@ def _mitsuba(seed: int, quick: bool = False) -> Scan:
     return Scan(
         f"mitsuba-{seed}",
         "mitsuba",
-        ("--renderer", "mitsuba", "--seed", str(seed), "--size", "256x192"),
+        # Random physics too (camera, projector, clay), drawn apart from the native scans'.
+        ("--renderer", "mitsuba", "--seed", str(seed), "--size", "256x192")
+        + ("--physics", "random", "--physics-seed", str(100 + seed)),
         quick,
     )
 
