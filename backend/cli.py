@@ -69,12 +69,24 @@ def _start_sweeper(settings: Settings, factory) -> None:
     Sweeper(factory, dispatcher_from_settings(settings), settings).start()
 
 
+def _with_dev_public_url(settings: Settings, *, host: str, port: int) -> Settings:
+    """Without HAMMURABI_PUBLIC_URL (allowed outside production) absolute URLs name the
+    address we listen on; also put in the environment for ``--workers`` processes."""
+    if settings.public_url is not None:
+        return settings
+    if host in ("", "0.0.0.0", "::"):
+        host = "127.0.0.1"
+    public_url = f"http://{f'[{host}]' if ':' in host else host}:{port}"
+    os.environ["HAMMURABI_PUBLIC_URL"] = public_url
+    return settings.model_copy(update={"public_url": public_url})
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from backend.main import create_app
 
-    settings = _settings()
+    settings = _with_dev_public_url(_settings(), host=args.host, port=args.port)
     _start_sweeper(settings, _migrated_sessionmaker(settings))
     options = dict(host=args.host, port=args.port, log_level=args.log_level)
     if args.workers > 1:
@@ -124,19 +136,35 @@ def cmd_worker(args: argparse.Namespace) -> int:
     return 0  # pragma: no cover (exec does not return)
 
 
+PASSWORD_ARGV_REFUSED = (
+    "--password is not accepted: a password on the command line is visible to every user in "
+    "`ps` and stays in the shell history; type it at the prompt, or pipe it with "
+    "--password-stdin (e.g. from a password manager)"
+)
+MIN_PASSWORD_CHARS = 8
+
+
 def _read_password(args: argparse.Namespace) -> str | None:
+    """The new account's password: asked twice on the terminal, or one line of stdin."""
+    if args.password is not None:
+        raise CliError(PASSWORD_ARGV_REFUSED)
     if args.no_password:
         return None
-    if args.password is not None:
-        password = args.password
+    if args.password_stdin:
+        password = sys.stdin.readline().removesuffix("\n").removesuffix("\r")
+        if not password:
+            raise CliError("--password-stdin: stdin gave no password (an empty first line)")
     elif sys.stdin.isatty():
         password = getpass.getpass("password: ")
         if getpass.getpass("again: ") != password:
             raise CliError("the two passwords differ")
     else:
-        raise CliError("give --password, or --no-password for a token-only account")
-    if len(password) < 8:
-        raise CliError("password: at least 8 characters")
+        raise CliError(
+            "no terminal to ask the password on: pipe it with --password-stdin, "
+            "or give --no-password for a token-only account"
+        )
+    if len(password) < MIN_PASSWORD_CHARS:
+        raise CliError(f"password: at least {MIN_PASSWORD_CHARS} characters")
     return password
 
 
@@ -231,8 +259,15 @@ def build_parser() -> argparse.ArgumentParser:
     user.add_argument("--role", choices=[r.value for r in Role], required=True)
     user.add_argument("--institution", help="name; created if new (required for staff)")
     secret = user.add_mutually_exclusive_group()
-    secret.add_argument("--password", help="otherwise asked on the terminal")
+    secret.add_argument(
+        "--password-stdin",
+        action="store_true",
+        help="read the password from the first line of stdin (default: asked twice on the "
+        "terminal)",
+    )
     secret.add_argument("--no-password", action="store_true", help="token-only account")
+    # Kept only to refuse it with the reason (PASSWORD_ARGV_REFUSED), not listed in --help.
+    secret.add_argument("--password", help=argparse.SUPPRESS)
     user.set_defaults(handler=cmd_create_user)
 
     token = commands.add_parser("create-token", help="create an API token (printed once)")

@@ -103,26 +103,49 @@ def create_user(
     return user
 
 
+def revoke_sessions(session: Session, *, user: User) -> None:
+    """Make every session cookie of ``user`` signed so far unusable (a new login still works).
+
+    Incremented in SQL so two concurrent revocations cannot collapse into one.
+    """
+    user.session_version = User.session_version + 1
+    session.flush()
+    session.refresh(user, ["session_version"])
+
+
 def update_user(session: Session, *, user: User, changes: dict[str, Any]) -> User:
+    """Apply ``changes``; a new password or disabling the account revokes its sessions."""
+    revoke = False
     if "password" in changes:
         password = changes.pop("password")
         if password:
             user.password_hash = security.hash_password(password)
+            revoke = True
+    if changes.get("is_active") is False and user.is_active:
+        revoke = True
     for key, value in changes.items():
         setattr(user, key, value)
     if user.role == Role.staff and user.institution_id is None:
         raise ValueError("institution_id: staff users must belong to an institution")
     session.flush()
+    if revoke:
+        revoke_sessions(session, user=user)
     return user
 
 
 def authenticate(session: Session, *, email: str, password: str) -> User | None:
     user = get_user_by_email(session, email=email)
-    if user is None or not user.is_active:
+    return user if password_matches(user, password) else None
+
+
+def password_matches(user: User | None, password: str) -> bool:
+    """Whether ``user`` exists, is active and has this password (no database access, so it
+    may run after the session is closed)."""
+    if user is None or not user.is_active or not user.password_hash:
         # Hash anyway so that unknown e-mails take as long as wrong passwords.
         security.verify_password(_DUMMY_HASH, password)
-        return None
-    return user if security.verify_password(user.password_hash, password) else None
+        return False
+    return security.verify_password(user.password_hash, password)
 
 
 _DUMMY_HASH = security.hash_password("not a real password")

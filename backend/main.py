@@ -21,6 +21,7 @@ from fastapi.staticfiles import StaticFiles
 from backend.api import auth, institutions, tablets, tokens, users
 from backend.db import make_engine, make_sessionmaker
 from backend.errors import install_error_handlers
+from backend.headers import SecurityHeaders
 from backend.search import FacetSnapshot, invalidate_on_tablet_writes
 from backend.security import SessionSigner
 from backend.settings import Settings, get_settings
@@ -81,6 +82,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         expose_headers=["Content-Range", "ETag", "X-Total-Count", "Content-Disposition"],
         allow_credentials=False,
     )
+    app.add_middleware(SecurityHeaders, settings=settings, docs_path=app.docs_url)
 
     @app.get(f"{settings.api_prefix}/health", tags=["health"])
     def health() -> dict[str, str]:

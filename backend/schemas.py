@@ -25,6 +25,11 @@ class LoginIn(BaseModel):
     password: str = Field(min_length=1, max_length=1000)
 
 
+class PasswordChangeIn(BaseModel):
+    current_password: str = Field(min_length=1, max_length=1000)
+    new_password: str = Field(min_length=8, max_length=1000)
+
+
 class InstitutionIn(BaseModel):
     name: str = Field(min_length=1, max_length=200)
 

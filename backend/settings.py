@@ -3,9 +3,12 @@
 Every knob the backend (and the worker, which imports this module) reads lives here.
 Values come from the environment or a ``.env`` file; see docs/admin.md for the table.
 
-Secrets: in ``production`` the service refuses to start without ``HAMMURABI_SECRET_KEY``
-(and refuses well-known placeholder values); in ``development``/``test`` a random secret is
-generated once and kept in ``<data_dir>/secret_key`` so sessions survive restarts.
+Secrets: in ``production`` the service refuses to start without ``HAMMURABI_SECRET_KEY``, and
+refuses any secret it holds (the key, the S3 secret, the database password) that is a known
+placeholder, is derived from one (case, punctuation, look-alike digits, repetition, reversal),
+or has too little estimated entropy (:func:`backend.secret_policy.secret_problem`). In ``development``/``test`` a
+random secret is generated once and kept in ``<data_dir>/secret_key`` so sessions survive
+restarts.
 """
 
 from __future__ import annotations
@@ -15,19 +18,27 @@ import secrets
 from functools import cached_property
 from pathlib import Path
 from typing import Literal
+from urllib.parse import urlsplit, urlunsplit
 
-from pydantic import Field, SecretStr, model_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+from sqlalchemy.engine import make_url
+from sqlalchemy.exc import ArgumentError
 
-_PLACEHOLDER_SECRETS = {"", "changeme", "change-me", "secret", "changethis", "dev", "development"}
-_MIN_SECRET_CHARS = 32
+from backend.secret_policy import GENERATE_HINT, MIN_SECRET_CHARS, secret_problem
+
+DEV_PUBLIC_URL = "http://127.0.0.1:8000"  # `hammurabi serve` sets its own host and port
 
 
 class Settings(BaseSettings):
     """Configuration of the library service; construct once, pass explicitly."""
 
     model_config = SettingsConfigDict(
-        env_prefix="HAMMURABI_", env_file=".env", extra="ignore", frozen=True
+        env_prefix="HAMMURABI_",
+        env_file=".env",
+        extra="ignore",
+        frozen=True,
+        hide_input_in_errors=True,  # a refusal must not print the secrets it refuses
     )
 
     environment: Literal["development", "test", "production"] = "development"
@@ -44,8 +55,25 @@ class Settings(BaseSettings):
     session_cookie_secure: bool | None = Field(
         default=None, description="Secure flag of the cookie; default: True in production"
     )
+    # login limits (backend.security.LoginLimiter; per server process)
+    login_max_attempts_per_account: int = Field(
+        default=5, ge=1, description="failed logins of one e-mail per window before 429"
+    )
+    login_max_attempts_per_address: int = Field(
+        default=30, ge=1, description="failed logins from one client address per window"
+    )
+    login_window_s: float = Field(default=300.0, gt=0, description="sliding window of both")
+    password_hash_concurrency: int = Field(
+        default=2, ge=1, description="argon2 hashes at once (64 MiB each); the rest wait"
+    )
 
     # HTTP
+    public_url: str | None = Field(
+        default=None,
+        description="the address users reach the library at, e.g. https://library.museum.org "
+        "(IIIF ids and every absolute URL start with it, never with the request's Host "
+        "header); required in production; elsewhere default http://127.0.0.1:<port>",
+    )
     cors_allow_origins: list[str] = ["*"]
     frontend_dist: Path | None = Field(
         default=None, description="built frontend served at /; default frontend/dist if present"
@@ -114,6 +142,21 @@ class Settings(BaseSettings):
     )
     job_time_limit_s: float = Field(default=3600.0, gt=0, description="hard limit per task")
 
+    @field_validator("public_url")
+    @classmethod
+    def _check_public_url(cls, value: str | None) -> str | None:
+        if value is None or not value.strip():
+            return None
+        parts = urlsplit(value.strip())
+        if parts.scheme not in ("http", "https") or not parts.hostname:
+            raise ValueError(
+                f"HAMMURABI_PUBLIC_URL {value!r} is not an http(s) URL with a host, "
+                "e.g. https://library.museum.org"
+            )
+        if parts.query or parts.fragment:
+            raise ValueError(f"HAMMURABI_PUBLIC_URL {value!r} must not have a query or fragment")
+        return urlunsplit((parts.scheme, parts.netloc, parts.path.rstrip("/"), "", ""))
+
     @model_validator(mode="after")
     def _check_job_timing(self) -> Settings:
         if self.job_stale_after_s < 2 * self.job_heartbeat_interval_s:
@@ -125,20 +168,49 @@ class Settings(BaseSettings):
         return self
 
     @model_validator(mode="after")
-    def _refuse_default_secrets_in_production(self) -> Settings:
-        if self.environment == "production":
-            value = self.secret_key.get_secret_value() if self.secret_key else ""
-            if value.strip().lower() in _PLACEHOLDER_SECRETS:
-                raise ValueError(
-                    "HAMMURABI_SECRET_KEY must be set to a random value in production "
-                    '(e.g. python -c "import secrets; print(secrets.token_urlsafe(48))")'
-                )
-            if len(value) < _MIN_SECRET_CHARS:
-                raise ValueError(
-                    f"HAMMURABI_SECRET_KEY is too short ({len(value)} chars, "
-                    f"need at least {_MIN_SECRET_CHARS})"
-                )
+    def _production_requirements(self) -> Settings:
+        """Every problem at once: weak secrets (backend.secret_policy), no public URL."""
+        if self.environment != "production":
+            return self
+        problems = [
+            f"{name} {problem}"
+            for name, value in self._held_secrets()
+            if (problem := secret_problem(value)) is not None
+        ]
+        if problems:
+            problems[-1] += f" ({GENERATE_HINT})"
+        if self.public_url is None:
+            problems.append(
+                "HAMMURABI_PUBLIC_URL is not set: give the address users reach the library "
+                "at, e.g. https://library.museum.org (IIIF ids and links are built from it)"
+            )
+        if problems:
+            raise ValueError("refusing to start in production: " + "; ".join(problems))
         return self
+
+    def _held_secrets(self) -> list[tuple[str, str | None]]:
+        """(variable, value) of every secret this object holds; the database password is
+        checked only when the URL has one (a local socket may need none)."""
+        held = [
+            ("HAMMURABI_SECRET_KEY", self.secret_key.get_secret_value() if self.secret_key else "")
+        ]
+        if self.s3_secret_access_key is not None:
+            held.append(
+                ("HAMMURABI_S3_SECRET_ACCESS_KEY", self.s3_secret_access_key.get_secret_value())
+            )
+        if self.database_url:
+            try:
+                password = make_url(self.database_url).password
+            except ArgumentError:
+                password = None  # a malformed URL fails clearly when the engine is made
+            if password is not None:
+                held.append(("the password in HAMMURABI_DATABASE_URL", str(password)))
+        return held
+
+    @property
+    def resolved_public_url(self) -> str:
+        """Base of every absolute URL we hand out, without a trailing slash."""
+        return self.public_url if self.public_url is not None else DEV_PUBLIC_URL
 
     @property
     def resolved_database_url(self) -> str:
@@ -178,7 +250,7 @@ class Settings(BaseSettings):
 def _load_or_create_dev_secret(path: Path) -> str:
     if path.exists():
         value = path.read_text().strip()
-        if len(value) >= _MIN_SECRET_CHARS:
+        if len(value) >= MIN_SECRET_CHARS:
             return value
     path.parent.mkdir(parents=True, exist_ok=True)
     value = secrets.token_urlsafe(48)

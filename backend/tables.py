@@ -94,6 +94,9 @@ class User(Base):
         ForeignKey("institutions.id", ondelete="SET NULL"), index=True
     )
     is_active: Mapped[bool] = mapped_column(Boolean, default=True)
+    # In every session cookie; bumped by logout, a password change and disabling the account,
+    # which makes every cookie signed before unusable (crud.revoke_sessions).
+    session_version: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
     institution: Mapped[Institution | None] = relationship(lazy="joined")

@@ -20,6 +20,7 @@ import argparse
 import contextlib
 import json
 import os
+import secrets
 import shutil
 import signal
 import socket
@@ -80,6 +81,8 @@ class LocalLibrary:
             **{k: v for k, v in os.environ.items() if not k.startswith("HAMMURABI_")},
             "HAMMURABI_DATA_DIR": str(self.data_dir),
             "HAMMURABI_ENVIRONMENT": "development",
+            # A fresh random key per demo: nothing signing sessions comes from the source tree.
+            "HAMMURABI_SECRET_KEY": secrets.token_urlsafe(48),
             "PYTHONUNBUFFERED": "1",
             **(env or {}),
         }

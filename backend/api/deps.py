@@ -7,7 +7,9 @@ right error.
 - ``SessionDep``: a session committed when the route function returns (scope="function", so
   a failing commit is a 500 and never a success response), rolled back on errors.
 - Authentication: ``Authorization: Bearer <api token>`` or the signed session cookie. A
-  bad bearer token is a 401 (a rig agent must notice); a bad cookie is just anonymous.
+  bad bearer token is a 401 (a rig agent must notice); a bad cookie is just anonymous, and
+  so is a cookie whose session version is no longer the user's (logged out, password
+  changed, account disabled).
 - Tablet path parameter ``{tablet_id}``: our integer id or the P-number (``P001229``); a
   record the user may not read is a 404 (its existence is not revealed); a readable record
   the user may not edit is a 403.
@@ -71,10 +73,14 @@ def get_optional_user(
     cookie = request.cookies.get(settings.session_cookie_name)
     if cookie:
         signer: SessionSigner = request.app.state.session_signer
-        user_id = signer.loads(cookie)
-        if user_id is not None:
-            user = session.get(User, user_id)
-            if user is not None and user.is_active:
+        claim = signer.loads(cookie)
+        if claim is not None:
+            user = session.get(User, claim.user_id)
+            if (
+                user is not None
+                and user.is_active
+                and user.session_version == claim.session_version
+            ):
                 return user
     return None
 

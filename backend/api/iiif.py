@@ -7,7 +7,7 @@ the same document. The newest model version of each face is shown.
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -56,8 +56,10 @@ def newest_models(session: Session, tablet_id: int) -> dict[str, Model]:
     return newest
 
 
-def _manifest(request: Request, session: Session, settings, tablet: Tablet) -> dict:
-    base = str(request.base_url).rstrip("/")
+def _manifest(session: Session, settings, tablet: Tablet) -> dict:
+    # The configured public URL, never the request's Host header: a forged Host must not
+    # put another site's address into ids that harvesters store and follow.
+    base = settings.resolved_public_url
     api = f"{base}{settings.api_prefix}"
     models = newest_models(session, tablet.id)
     if not models:
@@ -88,19 +90,17 @@ def _manifest(request: Request, session: Session, settings, tablet: Tablet) -> d
 
 
 @router.get("/tablets/{tablet_id}/iiif/manifest.json", response_class=JSONResponse)
-def read_manifest(
-    tablet: ReadableTablet, session: SessionDep, settings: SettingsDep, request: Request
-):
+def read_manifest(tablet: ReadableTablet, session: SessionDep, settings: SettingsDep):
     """The IIIF Presentation 3.0 Manifest of the tablet (404 until a model exists)."""
-    return JSONResponse(_manifest(request, session, settings, tablet), media_type=MEDIA_TYPE)
+    return JSONResponse(_manifest(session, settings, tablet), media_type=MEDIA_TYPE)
 
 
 @router.get("/tablets/{tablet_id}/iiif/scene/{part:path}", response_class=JSONResponse)
 def read_manifest_part(
-    part: str, tablet: ReadableTablet, session: SessionDep, settings: SettingsDep, request: Request
+    part: str, tablet: ReadableTablet, session: SessionDep, settings: SettingsDep
 ):
     """A Scene, AnnotationPage or Annotation of the manifest, by its id."""
-    manifest = _manifest(request, session, settings, tablet)
+    manifest = _manifest(session, settings, tablet)
     wanted = manifest["id"].rsplit("/", 1)[0] + f"/scene/{part}"
     found = find_by_id(manifest, wanted)
     if found is None:

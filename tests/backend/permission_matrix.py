@@ -90,6 +90,13 @@ MATRIX: dict[str, list[Case]] = {
         )
     ],
     "POST /api/v1/auth/logout": [Case("anyone", expect(204, 204, 204, 204, 204))],
+    "POST /api/v1/auth/password": [
+        Case(
+            "own password, wrong current one (changes nothing)",
+            expect(401, 403, 403, 403, 403),
+            json=lambda w, role: {"current_password": "not it", "new_password": "long enough 2"},
+        )
+    ],
     "GET /api/v1/auth/me": [Case("signed in", expect(401, 200, 200, 200, 200))],
     "GET /api/v1/users": [Case("admins only", expect(401, 403, 403, 403, 200))],
     "POST /api/v1/users": [

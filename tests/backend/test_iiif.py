@@ -158,3 +158,39 @@ def test_build_manifest_rules():
     assert metadata_entries({"designation": "", "period": None, "width_mm": 20.0}) == [
         {"label": {"en": ["Dimensions"]}, "value": {"none": ["width 20 mm"]}}
     ]
+
+
+def test_ids_come_from_the_public_url_not_the_host_header(
+    sqlite_url, tmp_path, password_hash, monkeypatch
+):
+    """A forged Host header must not end up in ids that harvesters store and follow."""
+    from fastapi.testclient import TestClient
+
+    from backend.main import create_app
+    from tests.backend.conftest import build_world, make_settings
+
+    settings = make_settings(sqlite_url, tmp_path, public_url="https://library.example.org/dh/")
+    app = create_app(settings)
+    app.state.storage = LocalStorage(settings.resolved_storage_dir)
+    world = build_world(app.state.sessionmaker, password_hash, settings)
+    finish(world, app.state.storage, tmp_path, job_helpers.new_job(world, tablet_id=world.public_a))
+    with TestClient(app, base_url="http://evil.example") as client:
+        url = f"{API}/tablets/{world.public_a}/iiif/manifest.json"
+        manifest = client.get(url, headers={"Host": "evil.example"}).json()
+    app.state.engine.dispose()
+    base = "https://library.example.org/dh"
+    assert manifest["id"] == f"{base}{API}/tablets/{world.public_a}/iiif/manifest.json"
+    text = str(manifest)
+    assert "evil.example" not in text and "testserver" not in text
+    ids = [node["id"] for node in _walk(manifest) if isinstance(node.get("id"), str)]
+    assert ids and all(i.startswith(base) or i.startswith("http://iiif.io") for i in ids), ids
+
+
+def _walk(node):
+    if isinstance(node, dict):
+        yield node
+        for value in node.values():
+            yield from _walk(value)
+    elif isinstance(node, list):
+        for value in node:
+            yield from _walk(value)

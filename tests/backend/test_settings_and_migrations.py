@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import secrets
 import stat
 
 import pytest
@@ -26,11 +27,29 @@ def test_production_refuses_missing_or_weak_secret(tmp_path, secret):
 
 
 def test_production_uses_the_configured_secret(tmp_path):
-    secret = "s" * 48
-    settings = _settings(environment="production", data_dir=tmp_path, secret_key=secret)
+    secret = secrets.token_urlsafe(48)
+    settings = _settings(
+        environment="production",
+        data_dir=tmp_path,
+        secret_key=secret,
+        public_url="https://library.example.org",
+    )
     assert settings.signing_secret == secret
     assert settings.cookie_secure is True
     assert not (tmp_path / "secret_key").exists()
+
+
+@pytest.mark.parametrize(
+    "url", ["library.example.org", "ftp://library.example.org", "https://", "https://a.org/?x=1"]
+)
+def test_public_url_must_be_an_http_url(url):
+    with pytest.raises(ValidationError, match="HAMMURABI_PUBLIC_URL"):
+        _settings(public_url=url)
+
+
+def test_public_url_default_outside_production():
+    assert _settings().resolved_public_url == "http://127.0.0.1:8000"
+    assert _settings(public_url="https://a.org/x/").resolved_public_url == "https://a.org/x"
 
 
 def test_development_secret_is_generated_once_and_private(tmp_path):

@@ -50,6 +50,14 @@ def browser():
         b.close()
 
 
+def watch_csp(pg, errors: list[str]) -> None:
+    """A resource the Content-Security-Policy blocks (backend/headers.py) fails the test."""
+    pg.on(
+        "console",
+        lambda msg: errors.append(msg.text) if "Content Security Policy" in msg.text else None,
+    )
+
+
 VIEWPORT = {"width": 960, "height": 600}  # small: SwiftShader renders every pixel on the CPU
 
 
@@ -59,6 +67,7 @@ def page(browser):
     pg = context.new_page()
     errors: list[str] = []
     pg.on("pageerror", lambda exc: errors.append(str(exc)))
+    watch_csp(pg, errors)
     yield pg
     context.close()
     assert not errors, f"uncaught errors in the page: {errors}"
@@ -71,6 +80,7 @@ def _viewer_page_module(browser, library):
     pg = context.new_page()
     errors: list[str] = []
     pg.on("pageerror", lambda exc: errors.append(str(exc)))
+    watch_csp(pg, errors)
     open_tablet(pg, library)
     yield pg, errors
     context.close()

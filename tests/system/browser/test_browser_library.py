@@ -15,7 +15,7 @@ def test_search_finds_a_tablet_and_opens_its_page(page, library):
     assert page.locator(".card", has_text="P999002").locator(".placeholder").count() == 1
     page.locator("#q").fill("P999002")
     page.locator("#search-form button[type=submit]").click()
-    page.wait_for_function("document.querySelectorAll('.card').length === 1")
+    page.wait_for_function("() => document.querySelectorAll('.card').length === 1")
     card = page.locator(".card")
     assert "P999002" in card.inner_text()
     assert "Ur III" in card.inner_text()
@@ -33,13 +33,13 @@ def test_facets_count_and_filter(page, library):
     ob = page.locator("button[data-facet='period'][data-value='Old Babylonian']")
     assert ob.locator(".count").inner_text() == "2"
     ob.click()
-    page.wait_for_function("document.body.dataset.total === '2'")
+    page.wait_for_function("() => document.body.dataset.total === '2'")
     assert page.locator(".card").count() == 2
     assert "period=Old+Babylonian" in page.url or "period=Old%20Babylonian" in page.url
     has3d = page.locator("button[data-facet='has_3d'][data-value='true']")
     assert has3d.locator(".count").inner_text() == "1"
     has3d.click()
-    page.wait_for_function("document.body.dataset.total === '1'")
+    page.wait_for_function("() => document.body.dataset.total === '1'")
     assert "P999001" in page.locator(".card").inner_text()
 
 
@@ -74,8 +74,8 @@ def test_free_text_period_and_removable_filter_chips(page, library, tmp_path):
     assert first.is_visible()
     page.screenshot(path=str(tmp_path / "library-filter-chips.png"))
     page.locator(".chip[data-chip='q']").click()
-    page.wait_for_function("!document.querySelector(\".chip[data-chip='q']\")")
+    page.wait_for_function("() => !document.querySelector(\".chip[data-chip='q']\")")
     assert "q=" not in page.url and "period=Ur" in page.url
     page.locator(".chip[data-chip='period']").click()
-    page.wait_for_function("document.getElementById('chips').hidden")
+    page.wait_for_function("() => document.getElementById('chips').hidden")
     assert "period=" not in page.url

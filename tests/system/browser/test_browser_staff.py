@@ -120,7 +120,7 @@ def test_upload_resumes_and_ends_in_a_model_shown_in_the_viewer(
     page.wait_for_selector("#job-done:not([hidden])", timeout=180000)  # worker boot + job, busy CI
     assert page.locator("#job-state").inner_text() == "succeeded"
     page.locator("#job-link").click()
-    page.wait_for_function("document.getElementById('viewer').dataset.loaded", timeout=30000)
+    page.wait_for_function("() => document.getElementById('viewer').dataset.loaded", timeout=30000)
     page.evaluate("() => window.hammurabi.viewer.whenIdle()")
     png = page.locator("#viewer").screenshot()
     import io
@@ -140,7 +140,7 @@ def test_a_job_that_fails_says_why(page, library, server_module, worker, tmp_pat
     page.locator("#upload-start").click()
     page.wait_for_selector("#job-section:not([hidden])")
     page.wait_for_function(
-        "document.getElementById('job-state').dataset.state === 'failed'", timeout=180000
+        "() => document.getElementById('job-state').dataset.state === 'failed'", timeout=180000
     )
     reason = page.locator("#job-error").inner_text()
     assert reason.startswith("The reconstruction failed: ") and len(reason) > 40, reason

@@ -119,7 +119,7 @@ def test_distance_between_picked_points_is_within_one_percent(viewer_page, libra
     for p in (a, b):
         x, y = tools.screen_of(page, p)
         page.mouse.click(x, y)
-    page.wait_for_function("document.getElementById('readout').dataset.distanceMm")
+    page.wait_for_function("() => document.getElementById('readout').dataset.distanceMm")
     measured = float(page.locator("#readout").get_attribute("data-distance-mm"))
     assert abs(measured - truth) / truth < 0.01, (measured, truth)
     assert "mm" in page.locator("#readout").inner_text()
@@ -154,7 +154,7 @@ def test_permalink_restores_camera_light_and_shading(viewer_page, tools, browser
     other = browser.new_page(viewport=page.viewport_size)
     try:
         other.goto(link)
-        other.wait_for_function("document.getElementById('viewer').dataset.loaded")
+        other.wait_for_function("() => document.getElementById('viewer').dataset.loaded")
         after = other.evaluate("window.hammurabi.viewer.getState()")
     finally:
         other.close()
