@@ -7,6 +7,8 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from backend.iiif import cdli_url
+from backend.licences import LICENCE_DESCRIPTION, check_licence, effective
 from backend.tables import Role
 
 P_NUMBER_PATTERN = r"^[PQX]\d{6}$"
@@ -30,13 +32,40 @@ class PasswordChangeIn(BaseModel):
     new_password: str = Field(min_length=8, max_length=1000)
 
 
-class InstitutionIn(BaseModel):
+class LicenceFields(BaseModel):
+    """A licence URI and a credit line, checked the same way wherever they are set."""
+
+    licence: str | None = Field(default=None, max_length=300, description=LICENCE_DESCRIPTION)
+    attribution: str | None = Field(
+        default=None, max_length=500, description='the credit line, e.g. "Courtesy of ..."'
+    )
+
+    @field_validator("licence", mode="after")
+    @classmethod
+    def _licence(cls, value):
+        return check_licence(value)
+
+    @field_validator("attribution", mode="before")
+    @classmethod
+    def _attribution(cls, value):
+        return (value.strip() or None) if isinstance(value, str) else value
+
+
+class InstitutionIn(LicenceFields):
     name: str = Field(min_length=1, max_length=200)
+
+
+class InstitutionUpdate(LicenceFields):
+    """The defaults of the institution's tablets (``null`` clears one)."""
+
+    model_config = ConfigDict(extra="forbid")
 
 
 class InstitutionOut(ORMModel):
     id: int
     name: str
+    licence: str | None = None
+    attribution: str | None = None
     created_at: datetime
 
 
@@ -112,7 +141,7 @@ _TEXT_FIELDS = [
 ]
 
 
-class TabletFields(BaseModel):
+class TabletFields(LicenceFields):
     """Catalogue fields shared by create and update (all optional here)."""
 
     model_config = ConfigDict(extra="forbid")
@@ -179,6 +208,13 @@ class TabletOut(ORMModel):
     thickness_mm: float | None
     primary_publication: str | None
     notes: str | None
+    licence: str | None = Field(description="the record's own licence (null: the institution's)")
+    attribution: str | None
+    effective_licence: str | None = Field(
+        default=None, description="the licence that applies: the record's or its institution's"
+    )
+    effective_attribution: str | None = None
+    cdli_url: str | None = Field(default=None, description="the CDLI artifact page (P-numbers)")
     institution_id: int | None
     institution: str | None = None
     is_public: bool
@@ -189,13 +225,14 @@ class TabletOut(ORMModel):
 
     @classmethod
     def of(cls, tablet, *, api_prefix: str = "/api/v1") -> TabletOut:
-        data = {
-            name: getattr(tablet, name)
-            for name in cls.model_fields
-            if name not in ("url", "institution")
-        }
+        derived = ("url", "institution", "effective_licence", "effective_attribution", "cdli_url")
+        data = {name: getattr(tablet, name) for name in cls.model_fields if name not in derived}
         data["url"] = f"{api_prefix}/tablets/{tablet.id}"
         data["institution"] = tablet.institution.name if tablet.institution else None
+        applies = effective(tablet)
+        data["effective_licence"] = applies.licence
+        data["effective_attribution"] = applies.attribution
+        data["cdli_url"] = cdli_url(tablet.p_number)
         return cls.model_validate(data)
 
 

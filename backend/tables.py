@@ -80,6 +80,9 @@ class Institution(Base):
 
     id: Mapped[int] = mapped_column(primary_key=True)
     name: Mapped[str] = mapped_column(String(200), unique=True)
+    # Defaults for the institution's tablets and models that set none (backend.licences).
+    licence: Mapped[str | None] = mapped_column(String(300))
+    attribution: Mapped[str | None] = mapped_column(String(500))
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
 
@@ -138,6 +141,9 @@ class Tablet(Base):
     thickness_mm: Mapped[float | None] = mapped_column(Float)
     primary_publication: Mapped[str | None] = mapped_column(Text)
     notes: Mapped[str | None] = mapped_column(Text)
+    # A Creative Commons / RightsStatements.org URI and a credit line; None: the institution's.
+    licence: Mapped[str | None] = mapped_column(String(300))
+    attribution: Mapped[str | None] = mapped_column(String(500))
     institution_id: Mapped[int | None] = mapped_column(
         ForeignKey("institutions.id", ondelete="SET NULL"), index=True
     )
@@ -252,6 +258,9 @@ class Model(Base):
     storage_prefix: Mapped[str] = mapped_column(String(500))
     report: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     assets: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    # None: the tablet's (a model made elsewhere may carry its maker's licence and credit).
+    licence: Mapped[str | None] = mapped_column(String(300))
+    attribution: Mapped[str | None] = mapped_column(String(500))
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
     __table_args__ = (UniqueConstraint("scan_id", "version", name="uq_models_scan_version"),)
