@@ -19,6 +19,27 @@ class ORMModel(BaseModel):
     model_config = ConfigDict(from_attributes=True)
 
 
+# --- errors (backend.errors sends these; backend.docs puts them into the OpenAPI) ----------
+
+
+class ErrorOut(BaseModel):
+    """Every error: a message for people and the culprit (a field, a path parameter...)."""
+
+    detail: str
+    where: str | None
+
+
+class Problem(BaseModel):
+    where: str | None
+    message: str
+
+
+class ValidationErrorOut(ErrorOut):
+    """A 422: the first problem in ``detail`` / ``where``, all of them in ``problems``."""
+
+    problems: list[Problem] | None = None
+
+
 # --- auth and users -------------------------------------------------------------------------
 
 
