@@ -47,15 +47,37 @@ def describe_errors(schema: dict) -> dict:
     components["HTTPValidationError"] = validation
     components.pop("ValidationError", None)
     components["ErrorOut"] = ErrorOut.model_json_schema()
+    # Every error (401, 403, 404, 405, 409, 413, 416, 429...) has the same body: documented
+    # once per operation as its ``default`` response rather than guessed code by code.
+    default = {
+        "description": "an error: a message and the culprit",
+        "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorOut"}}},
+    }
+    for item in schema.get("paths", {}).values():
+        for operation in item.values():
+            if isinstance(operation, dict) and "responses" in operation:
+                operation["responses"].setdefault("default", default)
     return schema
 
 
-def install_docs(app: FastAPI, *, openapi_url: str, title: str) -> None:
-    """Routes of the documentation pages and the OpenAPI document with our error bodies."""
+def set_maximum(schema: dict, path: str, parameter: str, maximum: int) -> None:
+    """Document a limit that comes from the settings (a route's ``Query`` cannot know it)."""
+    for param in schema.get("paths", {}).get(path, {}).get("get", {}).get("parameters", []):
+        if param.get("name") == parameter:
+            param["schema"]["maximum"] = maximum
+
+
+def install_docs(
+    app: FastAPI, *, openapi_url: str, title: str, limits: dict[tuple[str, str], int]
+) -> None:
+    """Routes of the documentation pages and the OpenAPI document with our error bodies;
+    ``limits``: (path, query parameter) → the maximum the route enforces."""
 
     def openapi() -> dict:
         if app.openapi_schema is None:
             schema = get_openapi(title=app.title, version=app.version, routes=app.routes)
+            for (path, parameter), maximum in limits.items():
+                set_maximum(schema, path, parameter, maximum)
             app.openapi_schema = describe_errors(schema)
         return app.openapi_schema
 

@@ -24,11 +24,8 @@ class Licence:
 
 
 def check_licence(value: str | None) -> str | None:
-    """``value`` stripped, or ValueError naming what a licence must be."""
+    """``value``, or ValueError naming what a licence must be."""
     if value is None:
-        return None
-    value = value.strip()
-    if not value:
         return None
     if not is_rights_uri(value):
         raise ValueError(f"must be {LICENCE_DESCRIPTION.split(' ; ')[0]}, not {value!r}")

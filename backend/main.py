@@ -85,7 +85,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         allow_credentials=False,
     )
     app.add_middleware(SecurityHeaders, settings=settings, docs_path=DOCS_PATH)
-    install_docs(app, openapi_url=app.openapi_url, title=app.title)
+    install_docs(
+        app,
+        openapi_url=app.openapi_url,
+        title=app.title,
+        limits={(f"{settings.api_prefix}/tablets", "page_size"): settings.search_max_page_size},
+    )
 
     @app.get(f"{settings.api_prefix}/health", tags=["health"])
     def health() -> dict[str, str]:

@@ -5,9 +5,9 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, field_validator
 
-from backend.iiif import cdli_url
+from backend.iiif import RIGHTS_PATTERN, cdli_url
 from backend.licences import LICENCE_DESCRIPTION, check_licence, effective
 from backend.tables import Role
 
@@ -56,7 +56,13 @@ class PasswordChangeIn(BaseModel):
 class LicenceFields(BaseModel):
     """A licence URI and a credit line, checked the same way wherever they are set."""
 
-    licence: str | None = Field(default=None, max_length=300, description=LICENCE_DESCRIPTION)
+    licence: str | None = Field(
+        default=None,
+        max_length=300,
+        # Documented, and checked by check_licence with a message naming what is expected.
+        json_schema_extra={"pattern": RIGHTS_PATTERN.pattern},
+        description=LICENCE_DESCRIPTION,
+    )
     attribution: str | None = Field(
         default=None, max_length=500, description='the credit line, e.g. "Courtesy of ..."'
     )
@@ -74,6 +80,13 @@ class LicenceFields(BaseModel):
 
 class InstitutionIn(LicenceFields):
     name: str = Field(min_length=1, max_length=200)
+
+    @field_validator("name", mode="after")
+    @classmethod
+    def _name(cls, value: str) -> str:
+        if not value.strip():  # crud refuses a blank name: say so here, not as a 500
+            raise ValueError("must not be blank")
+        return value.strip()
 
 
 class InstitutionUpdate(LicenceFields):
@@ -110,7 +123,7 @@ class UserCreate(BaseModel):
     email: str = Field(pattern=EMAIL_PATTERN, max_length=320)
     password: str | None = Field(default=None, min_length=8, max_length=1000)
     role: Role = Role.reader
-    institution_id: int | None = None
+    institution_id: int | None = Field(default=None, ge=1, le=2**31 - 1)
 
     @field_validator("email", mode="before")
     @classmethod
@@ -121,8 +134,8 @@ class UserCreate(BaseModel):
 class UserUpdate(BaseModel):
     password: str | None = Field(default=None, min_length=8, max_length=1000)
     role: Role | None = None
-    institution_id: int | None = None
-    is_active: bool | None = None
+    institution_id: int | None = Field(default=None, ge=1, le=2**31 - 1)
+    is_active: StrictBool | None = None
 
 
 class TokenCreate(BaseModel):
@@ -184,7 +197,7 @@ class TabletFields(LicenceFields):
     thickness_mm: float | None = Field(default=None, gt=0, le=2000)
     primary_publication: str | None = Field(default=None, max_length=5000)
     notes: str | None = Field(default=None, max_length=20000)
-    is_public: bool | None = None
+    is_public: StrictBool | None = None  # 0 / "yes" are refused, not read as booleans
     extra: dict[str, Any] | None = None
 
     @field_validator(*[f for f in _TEXT_FIELDS if f != "designation"], mode="before")
@@ -199,13 +212,16 @@ class TabletFields(LicenceFields):
 class TabletCreate(TabletFields):
     designation: str = Field(min_length=1, max_length=300)
     institution_id: int | None = Field(
-        default=None, description="admins only; staff create for their own institution"
+        default=None,
+        ge=1,
+        le=2**31 - 1,
+        description="admins only; staff create for their own institution",
     )
 
 
 class TabletUpdate(TabletFields):
     designation: str | None = Field(default=None, min_length=1, max_length=300)
-    institution_id: int | None = Field(default=None, description="admins only")
+    institution_id: int | None = Field(default=None, ge=1, le=2**31 - 1, description="admins only")
 
 
 class TabletOut(ORMModel):

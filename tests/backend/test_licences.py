@@ -37,7 +37,7 @@ def test_a_licence_must_be_a_rights_uri(client, world):
     assert refused.status_code == 422
     body = refused.json()
     assert body["where"] == "body.licence" and "Creative Commons" in body["detail"]
-    ok = client.patch(url, json={"licence": f" {CC0} "}, headers=world.headers("staff_own"))
+    ok = client.patch(url, json={"licence": CC0}, headers=world.headers("staff_own"))
     assert ok.status_code == 200 and ok.json()["licence"] == CC0
     assert ok.json()["effective_licence"] == CC0
 
