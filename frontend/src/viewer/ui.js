@@ -62,11 +62,13 @@ export function bindViewerUi(viewer, context) {
   // --- measuring --------------------------------------------------------------------------
   let tool = null; // 'distance' | 'profile' | null
   let lastProfile = null;
+  let lastMeasure = null; // {tool, points, lengthMm}: what a permalink restores
+
   const picker = createPicker(viewer, canvas, {
     onPoint: (points) => {
       if (points.length === 1) setReadout(tool === 'profile' ? 'Click the end of the profile line.' : 'Click the second point.');
     },
-    onDone: (points) => (tool === 'profile' ? showProfile(points) : showDistance(points)),
+    onDone: (points) => showMeasure(tool, points),
   });
   function setTool(next) {
     tool = tool === next ? null : next;
@@ -82,6 +84,11 @@ export function bindViewerUi(viewer, context) {
   }
   function setReadout(text) {
     $('readout').textContent = text;
+  }
+  function showMeasure(kind, points) {
+    lastMeasure = { tool: kind, points: points.map((p) => [...p]), lengthMm: distanceMm(points[0], points[1]) };
+    context.measureChanged?.();
+    return kind === 'profile' ? showProfile(points) : showDistance(points);
   }
   function showDistance(points) {
     const d = distanceMm(points[0], points[1]);
@@ -122,7 +129,15 @@ export function bindViewerUi(viewer, context) {
     $('profile-panel').hidden = true;
   });
   $('profile-csv').addEventListener('click', () => {
-    if (lastProfile) download(new Blob([profileToCsv(lastProfile)], { type: 'text/csv' }), `${context.baseName()}-profile.csv`);
+    if (!lastProfile) return;
+    const about = {
+      ...(context.describe?.() ?? {}),
+      start: lastMeasure?.points[0],
+      end: lastMeasure?.points[1],
+      pixelSizeUm: heightGrid?.grid.pixelSizeUm,
+      permalink: permalinkUrl(),
+    };
+    download(new Blob([profileToCsv(lastProfile, about)], { type: 'text/csv' }), `${context.baseName()}-profile.csv`);
   });
 
   // --- share ------------------------------------------------------------------------------
@@ -136,9 +151,13 @@ export function bindViewerUi(viewer, context) {
       showNotice(`Screenshot failed: ${err.message}`);
     }
   }
-  function permalink() {
+  function permalinkUrl() {
     const url = new URL(window.location.href);
-    url.hash = encodeViewState(viewer.getState());
+    url.hash = encodeViewState({ ...viewer.getState(), measure: lastMeasure });
+    return url.toString();
+  }
+  function permalink() {
+    const url = new URL(permalinkUrl());
     $('permalink-text').value = url.toString();
     $('permalink-text').select();
     navigator.clipboard?.writeText(url.toString()).catch(() => {});
@@ -324,9 +343,19 @@ export function bindViewerUi(viewer, context) {
     stopTools() {
       if (tool) setTool(tool);
       heightGrid = null;
+      lastMeasure = null;
       $('profile-panel').hidden = true;
     },
     permalink,
+    permalinkUrl,
+    /** The measurement on screen ({tool, points, lengthMm}) or null. */
+    measurement: () => lastMeasure,
+    /** Show a measurement a permalink carried: marks, readout and (for a profile) the chart. */
+    restoreMeasure(measure) {
+      if (!measure) return;
+      viewer.setMarks(measure.points);
+      return showMeasure(measure.tool, measure.points);
+    },
     /** A lasting notice about the opened link (null: none), shown before any map notice. */
     setLinkNotice(text) {
       linkNotice = text || null;
