@@ -8,6 +8,7 @@ import { actionForKey, SHORTCUTS } from './keyboard.js';
 import { clampPolar, compassLabel, RAKING_PRESETS, wrapAzimuth } from './light.js';
 import { createLightWidget } from './lightWidget.js';
 import { createPicker, distanceMm, pixelSizeFromMesh } from './measure.js';
+import { annotateScreenshot, shotMmPerPixel } from './shot.js';
 import { encodeViewState } from './permalink.js';
 import { niceStep, profileToCsv, sampleProfile } from './profile.js';
 import { parseNpy } from './npy.js';
@@ -145,7 +146,30 @@ export function bindViewerUi(viewer, context) {
     const width = Math.round(Number($('shot-w').value));
     const height = Math.round(Number($('shot-h').value));
     try {
-      const blob = await viewer.screenshot({ width, height });
+      const shot = await viewer.screenshot({ width, height });
+      const mmPerPx = shotMmPerPixel({
+        mmPerScreenPx: viewer.mmPerPixel(),
+        canvasW: canvas.clientWidth || 1,
+        canvasH: canvas.clientHeight || 1,
+        shotW: width,
+        shotH: height,
+      });
+      const about = context.describe?.() ?? {};
+      const title = about.tablet
+        ? `${about.tablet}${about.pNumber ? ` (${about.pNumber})` : ''}, model ${about.modelId} version ${about.modelVersion}`
+        : null;
+      const { blob } = await annotateScreenshot(shot, {
+        mmPerPx,
+        text: {
+          Title: title,
+          Description: `${viewer.shading.mode} shading, light azimuth ${Math.round(viewer.light.azimuthDeg)}°, polar ${Math.round(viewer.light.polarDeg)}°`,
+          Copyright: about.licence,
+          Author: about.attribution,
+          Source: permalinkUrl(),
+          'Creation Time': new Date().toISOString(),
+          Software: 'Digital Hammurabi viewer',
+        },
+      });
       download(blob, `${context.baseName()}-${viewer.shading.mode}.png`);
     } catch (err) {
       showNotice(`Screenshot failed: ${err.message}`);
