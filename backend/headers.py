@@ -6,8 +6,8 @@ model downloads pass through untouched).
   also be ``blob:``/``data:`` (three.js' GLTFLoader turns a GLB's embedded textures into
   blob URLs and fetches them, and ``createImageBitmap`` reads albedo PNGs from blobs);
   ``frame-ancestors 'none'`` (with ``X-Frame-Options: DENY`` for old browsers) stops
-  click-jacking. The OpenAPI page (``/docs``) loads Swagger UI from its CDN with an inline
-  script, so it alone gets a policy allowing exactly that.
+  click-jacking. The API pages (``/docs``, backend.docs) need inline styles (ReDoc) and a
+  blob: worker, so they alone get a policy allowing exactly that.
 - ``Referrer-Policy: same-origin``: links to other sites do not leak tablet URLs.
 - ``Strict-Transport-Security`` only when the request came over TLS or the public base URL
   is https: sent over plain HTTP it would be ignored at best and lock out a dev server at
@@ -38,15 +38,17 @@ CSP = "; ".join(
         "frame-ancestors 'none'",
     )
 )
-# What FastAPI's get_swagger_ui_html loads: bundle and CSS from jsDelivr, one inline script.
-SWAGGER_CDN = "https://cdn.jsdelivr.net"
+# Swagger UI and ReDoc from our own files (backend.docs): no CDN, no inline script; ReDoc
+# styles with inline <style> elements and parses the schema in a blob: worker.
 DOCS_CSP = "; ".join(
     (
         "default-src 'self'",
-        f"script-src 'self' 'unsafe-inline' {SWAGGER_CDN}",
-        f"style-src 'self' {SWAGGER_CDN}",
-        "img-src 'self' data: https://fastapi.tiangolo.com",
+        "script-src 'self'",
+        "style-src 'self' 'unsafe-inline'",
+        "img-src 'self' data:",
         "connect-src 'self'",
+        "worker-src 'self' blob:",
+        "font-src 'self' data:",
         "object-src 'none'",
         "base-uri 'self'",
         "frame-ancestors 'none'",

@@ -1,23 +1,39 @@
-"""IIIF Presentation 3.0 manifests of tablets: pure functions from records to JSON.
+"""IIIF manifests of tablets: pure functions from records to JSON.
 
-One ``Scene`` per face (and one for the whole tablet when a registered model exists), each
-painted by its ``model.glb`` as an Annotation whose body has ``type: "Model"`` and
-``format: "model/gltf-binary"``. Downloads (PLY mesh, height map) are ``rendering``
-entries, the thumbnail is ``thumbnail``, catalogue fields are ``metadata`` (language maps),
-and ``rights`` / ``requiredStatement`` appear when the record says who holds the rights.
-Spec: https://iiif.io/api/presentation/3.0/ ; the ``Scene`` container and ``Model`` body
-follow the IIIF 3D community group's extension of it (a Scene is a 3-D Canvas).
+Two documents per tablet:
+
+- ``build_manifest``: a IIIF Presentation 3.0 Manifest (https://iiif.io/api/presentation/3.0/)
+  that validates with ``iiif-prezi3``. One ``Canvas`` per scanned face, sized in pixels of
+  the face's image grid, painted by two image layers: the albedo (shown first) and the
+  normal map. Each layer carries the *lighting map* service descriptor
+  (``profile`` http://iiif.io/api/annex/services/lightingmap, ``mapType`` albedo / normal)
+  that the Bodleian's ARCHiOx relighting plugin for Mirador reads to pair the two maps; the
+  height map (µm) and the mesh are ``rendering`` downloads of the canvas, and the canvas's
+  physical scale is the Physical Dimensions service (mm per pixel). Catalogue fields are
+  ``metadata``, the licence is ``rights``, the attribution ``requiredStatement``, our JSON
+  record and the CDLI record are ``seeAlso``, the tablet page ``homepage``.
+- ``build_3d_manifest``: the 3-D models as ``Scene`` s painted by ``Model`` bodies
+  (glTF binary), the shape of the IIIF 3D community group's Presentation 4 draft. It is a
+  separate document because ``Scene`` / ``Model`` are not Presentation 3 types.
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 CONTEXT = "http://iiif.io/api/presentation/3/context.json"
+CONTEXT_3D = "http://iiif.io/api/presentation/4/context.json"
 MEDIA_TYPE = f'application/ld+json;profile="{CONTEXT}"'
+MEDIA_TYPE_3D = f'application/ld+json;profile="{CONTEXT_3D}"'
 WHOLE = "tablet"  # the face name used for the registered model of the whole tablet
+LIGHTING_MAP = "http://iiif.io/api/annex/services/lightingmap"
+PHYSICAL_DIMENSIONS = "http://iiif.io/api/annex/services/physdim"
+# CDLI's artifact pages are addressed by the P-number's digits (P254191 -> /artifacts/254191).
+CDLI_ARTIFACT_URL = "https://cdli.mpiwg-berlin.mpg.de/artifacts/{}"
+FACE_ORDER = ("obverse", "reverse", "top", "bottom", "left", "right", "other")
 
 # Catalogue field → English label, in display order.
 METADATA_FIELDS = (
@@ -36,29 +52,63 @@ METADATA_FIELDS = (
     ("object_type", "Object type"),
     ("primary_publication", "Primary publication"),
 )
-RIGHTS_PREFIXES = ("http://creativecommons.org/", "http://rightsstatements.org/")
+# Presentation 3 §3.3.1 "rights": a Creative Commons licence or a RightsStatements.org
+# statement (either scheme, http or https as both organisations publish them).
+RIGHTS_PATTERN = re.compile(
+    r"^https?://(creativecommons\.org/(licenses|publicdomain)/[a-z0-9.+-]+(/[0-9.]+)?"
+    r"(/[a-z-]+)?/?|rightsstatements\.org/vocab/[A-Za-z-]+/[0-9.]+/?)$"
+)
 
-# Model files offered for download: name → (IIIF type, format, label).
+# Downloads of a face: name → (IIIF type, format, label).
 RENDERINGS = (
     ("mesh.ply", "Model", "application/ply", "Mesh (PLY, millimetres)"),
+    ("model.glb", "Model", "model/gltf-binary", "Model (glTF binary, metres)"),
     ("height.npy", "Dataset", "application/octet-stream", "Height map (NumPy float32, µm)"),
     ("normals.npy", "Dataset", "application/octet-stream", "Normal map (NumPy float32)"),
-    ("albedo.png", "Image", "image/png", "Albedo (sRGB)"),
+)
+# Image layers of a face's canvas, bottom first: name → (lighting map type, label).
+LAYERS = (
+    ("albedo.png", "albedo", "Albedo (reflectance, sRGB)"),
+    ("normals.png", "normal", "Normal map (RGB = (n + 1) / 2)"),
 )
 
 
 @dataclass(frozen=True)
 class FaceModel:
-    """The model version shown for one face: its id, version and asset URLs by file name."""
+    """The model version shown for one face: id, version, asset URLs and image grid."""
 
     face: str
     model_id: int
     version: int
     asset_urls: Mapping[str, str]
+    width_px: int | None = None
+    height_px: int | None = None
+    pixel_size_um: float | None = None
+
+
+@dataclass(frozen=True)
+class Provenance:
+    """Who holds the rights and under which licence: ``rights`` is a licence URI."""
+
+    rights: str | None = None
+    attribution: str | None = None
+    links: Mapping[str, str] = field(default_factory=dict)
 
 
 def lang(value: str, language: str = "none") -> dict[str, list[str]]:
     return {language: [value]}
+
+
+def is_rights_uri(value: object) -> bool:
+    """True for a Creative Commons or RightsStatements.org URI (Presentation 3 ``rights``)."""
+    return isinstance(value, str) and RIGHTS_PATTERN.match(value) is not None
+
+
+def cdli_url(p_number: str | None) -> str | None:
+    """The CDLI artifact page of a P-number (``P254191`` → …/artifacts/254191), else None."""
+    if not p_number or not re.fullmatch(r"P\d{6}", p_number) or int(p_number[1:]) == 0:
+        return None
+    return CDLI_ARTIFACT_URL.format(int(p_number[1:]))
 
 
 def metadata_entries(fields: Mapping[str, Any]) -> list[dict[str, Any]]:
@@ -75,43 +125,158 @@ def metadata_entries(fields: Mapping[str, Any]) -> list[dict[str, Any]]:
     return entries
 
 
-def _scene(manifest_id: str, face_model: FaceModel) -> dict[str, Any]:
-    base = manifest_id.rsplit("/", 1)[0]
-    scene_id = f"{base}/scene/{face_model.face}"
-    urls = face_model.asset_urls
-    label = "whole tablet" if face_model.face == WHOLE else face_model.face
-    annotation = {
-        "id": f"{scene_id}/annotation/1",
-        "type": "Annotation",
-        "motivation": "painting",
-        "body": {
-            "id": urls["model.glb"],
-            "type": "Model",
-            "format": "model/gltf-binary",
-            "label": lang(f"{label}, model version {face_model.version}", "en"),
-        },
-        "target": scene_id,
-    }
-    scene: dict[str, Any] = {
-        "id": scene_id,
-        "type": "Scene",
-        "label": lang(label, "en"),
-        "items": [{"id": f"{scene_id}/page/1", "type": "AnnotationPage", "items": [annotation]}],
-    }
-    renderings = [
+def summary_text(fields: Mapping[str, Any], faces: Sequence[str]) -> str:
+    """One sentence a harvester can show under the label."""
+    what = str(fields.get("object_type") or "Cuneiform tablet")
+    where = ", ".join(str(fields[k]) for k in ("period", "provenience") if fields.get(k))
+    text = f"{what}{f' ({where})' if where else ''}"
+    if faces:
+        text += f": relightable 2.5-D scans of {', '.join(faces)}"
+    return text + "."
+
+
+def _face_key(face: str) -> tuple[int, str]:
+    return (FACE_ORDER.index(face) if face in FACE_ORDER else len(FACE_ORDER), face)
+
+
+def _image(url: str, width: int | None = None, height: int | None = None) -> dict[str, Any]:
+    image: dict[str, Any] = {"id": url, "type": "Image", "format": "image/png"}
+    if width and height:
+        image["width"], image["height"] = width, height
+    return image
+
+
+def _renderings(urls: Mapping[str, str]) -> list[dict[str, Any]]:
+    return [
         {"id": urls[name], "type": kind, "label": lang(text, "en"), "format": fmt}
         for name, kind, fmt, text in RENDERINGS
         if name in urls
     ]
+
+
+def has_canvas(face_model: FaceModel) -> bool:
+    """A face gets a canvas when it has an albedo image and a known image grid."""
+    return (
+        face_model.face != WHOLE
+        and "albedo.png" in face_model.asset_urls
+        and bool(face_model.width_px)
+        and bool(face_model.height_px)
+    )
+
+
+def _canvas(base: str, face_model: FaceModel) -> dict[str, Any]:
+    canvas_id = f"{base}/canvas/{face_model.face}"
+    urls = face_model.asset_urls
+    w, h = int(face_model.width_px or 0), int(face_model.height_px or 0)
+    annotations = []
+    for index, (name, map_type, text) in enumerate(LAYERS, 1):
+        if name not in urls:
+            continue
+        body = _image(urls[name], w, h)
+        body["label"] = lang(text, "en")
+        body["service"] = [
+            {
+                "id": f"{canvas_id}/lightingmap/{map_type}",
+                "type": "Service",
+                "profile": LIGHTING_MAP,
+                "mapType": map_type,
+            }
+        ]
+        annotations.append(
+            {
+                "id": f"{canvas_id}/annotation/{index}",
+                "type": "Annotation",
+                "motivation": "painting",
+                "body": body,
+                "target": canvas_id,
+            }
+        )
+    canvas: dict[str, Any] = {
+        "id": canvas_id,
+        "type": "Canvas",
+        "label": lang(f"{face_model.face}, model version {face_model.version}", "en"),
+        "width": w,
+        "height": h,
+        "items": [{"id": f"{canvas_id}/page/1", "type": "AnnotationPage", "items": annotations}],
+    }
+    if face_model.pixel_size_um:
+        canvas["service"] = [
+            {
+                "id": f"{canvas_id}/physdim",
+                "type": "Service",
+                "profile": PHYSICAL_DIMENSIONS,
+                "physicalScale": face_model.pixel_size_um / 1000.0,
+                "physicalUnits": "mm",
+            }
+        ]
+    renderings = _renderings(urls)
     if renderings:
-        scene["rendering"] = renderings
+        canvas["rendering"] = renderings
     if "thumbnail.png" in urls:
-        scene["thumbnail"] = [_thumbnail(urls["thumbnail.png"])]
-    return scene
+        canvas["thumbnail"] = [_image(urls["thumbnail.png"])]
+    return canvas
 
 
-def _thumbnail(url: str) -> dict[str, str]:
-    return {"id": url, "type": "Image", "format": "image/png"}
+def _thumbnail(face_models: Sequence[FaceModel]) -> dict[str, Any] | None:
+    # The obverse is what a catalogue shows first; a bottom edge says nothing.
+    for face_model in sorted(face_models, key=lambda f: _face_key(f.face)):
+        for name in ("thumbnail.png", "albedo.png"):
+            if name in face_model.asset_urls:
+                return _image(face_model.asset_urls[name])
+    return None
+
+
+def _descriptive(
+    manifest: dict[str, Any],
+    *,
+    fields: Mapping[str, Any],
+    provenance: Provenance,
+    record_url: str | None,
+    homepage: str | None,
+) -> None:
+    """The properties shared by both manifests: rights, attribution, links, homepage."""
+    if is_rights_uri(provenance.rights):
+        manifest["rights"] = provenance.rights
+    if provenance.attribution:
+        manifest["requiredStatement"] = {
+            "label": lang("Attribution", "en"),
+            "value": lang(provenance.attribution, "en"),
+        }
+    see_also = []
+    if record_url:
+        see_also.append(
+            {
+                "id": record_url,
+                "type": "Dataset",
+                "format": "application/json",
+                "label": lang("Catalogue record (JSON)", "en"),
+            }
+        )
+    cdli = cdli_url(fields.get("p_number"))
+    if cdli:
+        see_also.append(
+            {
+                "id": cdli,
+                "type": "Text",
+                "format": "text/html",
+                "label": lang(f"CDLI record {fields['p_number']}", "en"),
+            }
+        )
+    for label, url in provenance.links.items():
+        see_also.append(
+            {"id": url, "type": "Dataset", "format": "application/ld+json", "label": lang(label)}
+        )
+    if see_also:
+        manifest["seeAlso"] = see_also
+    if homepage:
+        manifest["homepage"] = [
+            {
+                "id": homepage,
+                "type": "Text",
+                "label": lang(str(fields.get("designation") or "tablet")),
+                "format": "text/html",
+            }
+        ]
 
 
 def build_manifest(
@@ -119,46 +284,99 @@ def build_manifest(
     manifest_id: str,
     fields: Mapping[str, Any],
     face_models: Sequence[FaceModel],
+    provenance: Provenance = Provenance(),
+    record_url: str | None = None,
     homepage: str | None = None,
-    institution: str | None = None,
 ) -> dict[str, Any]:
-    """The Manifest for a tablet whose catalogue ``fields`` and shown ``face_models`` are given.
+    """The Presentation 3 Manifest of a tablet whose shown ``face_models`` are given.
 
-    ``face_models`` must not be empty (a Manifest needs at least one item); the whole-tablet
-    model, if any, comes first.
+    Only faces for which :func:`has_canvas` holds become canvases; at least one must.
     """
-    if not face_models:
-        raise ValueError("face_models must hold at least one model")
-    ordered = sorted(face_models, key=lambda f: (f.face != WHOLE, f.face))
+    shown = sorted((f for f in face_models if has_canvas(f)), key=lambda f: _face_key(f.face))
+    if not shown:
+        raise ValueError("face_models must hold at least one face with an albedo image")
+    base = manifest_id.rsplit("/", 1)[0]
     manifest: dict[str, Any] = {
         "@context": CONTEXT,
         "id": manifest_id,
         "type": "Manifest",
         "label": lang(str(fields.get("designation") or "tablet")),
+        "summary": lang(summary_text(fields, [f.face for f in shown]), "en"),
         "metadata": metadata_entries(fields),
-        "items": [_scene(manifest_id, f) for f in ordered],
+        "items": [_canvas(base, f) for f in shown],
     }
-    thumbs = [f.asset_urls["thumbnail.png"] for f in ordered if "thumbnail.png" in f.asset_urls]
-    if thumbs:
-        manifest["thumbnail"] = [_thumbnail(thumbs[0])]
-    rights = (fields.get("extra") or {}).get("rights")
-    if isinstance(rights, str) and rights.startswith(RIGHTS_PREFIXES):
-        manifest["rights"] = rights
-    holder = fields.get("owner") or institution
-    if holder:
-        manifest["requiredStatement"] = {
-            "label": lang("Attribution", "en"),
-            "value": lang(f"Courtesy of {holder}", "en"),
-        }
-    if homepage:
-        manifest["homepage"] = [
-            {
-                "id": homepage,
-                "type": "Text",
-                "label": lang(str(fields.get("designation"))),
-                "format": "text/html",
-            }
-        ]
+    thumbnail = _thumbnail(shown)
+    if thumbnail:
+        manifest["thumbnail"] = [thumbnail]
+    _descriptive(
+        manifest, fields=fields, provenance=provenance, record_url=record_url, homepage=homepage
+    )
+    return manifest
+
+
+def _scene(base: str, face_model: FaceModel) -> dict[str, Any]:
+    scene_id = f"{base}/scene/{face_model.face}"
+    urls = face_model.asset_urls
+    label = "whole tablet" if face_model.face == WHOLE else face_model.face
+    annotation = {
+        "id": f"{scene_id}/annotation/1",
+        "type": "Annotation",
+        "motivation": ["painting"],
+        "body": {
+            "id": urls["model.glb"],
+            "type": "Model",
+            "format": "model/gltf-binary",
+            "label": lang(f"{label}, model version {face_model.version}", "en"),
+        },
+        "target": {"id": scene_id, "type": "Scene"},
+    }
+    scene: dict[str, Any] = {
+        "id": scene_id,
+        "type": "Scene",
+        "label": lang(label, "en"),
+        "items": [{"id": f"{scene_id}/page/1", "type": "AnnotationPage", "items": [annotation]}],
+    }
+    renderings = _renderings({k: v for k, v in urls.items() if k != "model.glb"})
+    if renderings:
+        scene["rendering"] = renderings
+    if "thumbnail.png" in urls:
+        scene["thumbnail"] = [_image(urls["thumbnail.png"])]
+    return scene
+
+
+def build_3d_manifest(
+    *,
+    manifest_id: str,
+    fields: Mapping[str, Any],
+    face_models: Sequence[FaceModel],
+    provenance: Provenance = Provenance(),
+    record_url: str | None = None,
+    homepage: str | None = None,
+) -> dict[str, Any]:
+    """The 3-D models as a Presentation 4 draft Manifest: one ``Scene`` per ``model.glb``.
+
+    The whole-tablet model, if any, comes first.
+    """
+    shown = [f for f in face_models if "model.glb" in f.asset_urls]
+    if not shown:
+        raise ValueError("face_models must hold at least one model with a model.glb")
+    ordered = sorted(shown, key=lambda f: (f.face != WHOLE, _face_key(f.face)))
+    base = manifest_id.rsplit("/", 1)[0]
+    manifest: dict[str, Any] = {
+        "@context": CONTEXT_3D,
+        "id": manifest_id,
+        "type": "Manifest",
+        "label": lang(str(fields.get("designation") or "tablet")),
+        "summary": lang(summary_text(fields, []).rstrip(".") + ": 3-D models.", "en"),
+        "metadata": metadata_entries(fields),
+        "items": [_scene(base, f) for f in ordered],
+    }
+    thumbnail = _thumbnail(shown)
+    if thumbnail:
+        manifest["thumbnail"] = [thumbnail]
+    _descriptive(
+        manifest, fields=fields, provenance=provenance, record_url=record_url, homepage=homepage
+    )
     return manifest
 
 

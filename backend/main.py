@@ -1,6 +1,7 @@
 """The FastAPI application: ``create_app(settings)``.
 
-API under ``/api/v1`` (OpenAPI UI at ``/docs``), errors as ``{detail, where}``, CORS for
+API under ``/api/v1`` (Swagger UI at ``/docs``, ReDoc at ``/docs/redoc``, both offline:
+backend.docs), errors as ``{detail, where}``, CORS for
 reads, and the built frontend (``frontend/dist``) at ``/`` when it exists.
 
 Routers: one per resource, listed in ``ROUTERS``. Modules listed in ``OPTIONAL_ROUTERS``
@@ -22,6 +23,7 @@ from fastapi.staticfiles import StaticFiles
 from backend.api import auth, institutions, tablets, tokens, users
 from backend.api.deps import SessionGate
 from backend.db import make_engine, make_sessionmaker, server_pool_size
+from backend.docs import DOCS_PATH, install_docs
 from backend.errors import install_error_handlers
 from backend.headers import SecurityHeaders
 from backend.search import FacetSnapshot, invalidate_on_tablet_writes
@@ -64,7 +66,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app = FastAPI(
         title="Digital Hammurabi library",
         version="1",
-        docs_url="/docs",
+        docs_url=None,  # our own pages, from our own files: backend.docs
         redoc_url=None,
         openapi_url=f"{settings.api_prefix}/openapi.json",
         lifespan=lifespan,
@@ -89,7 +91,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         expose_headers=["Content-Range", "ETag", "X-Total-Count", "Content-Disposition"],
         allow_credentials=False,
     )
-    app.add_middleware(SecurityHeaders, settings=settings, docs_path=app.docs_url)
+    app.add_middleware(SecurityHeaders, settings=settings, docs_path=DOCS_PATH)
+    install_docs(
+        app,
+        openapi_url=app.openapi_url,
+        title=app.title,
+        limits={(f"{settings.api_prefix}/tablets", "page_size"): settings.search_max_page_size},
+    )
 
     @app.get(f"{settings.api_prefix}/health", tags=["health"])
     def health() -> dict[str, str]:

@@ -5,9 +5,11 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, field_validator
 
 from backend.db import RowId
+from backend.iiif import RIGHTS_PATTERN, cdli_url
+from backend.licences import LICENCE_DESCRIPTION, check_licence, effective
 from backend.tables import Role
 
 P_NUMBER_PATTERN = r"^[PQX]\d{6}$"
@@ -16,6 +18,27 @@ EMAIL_PATTERN = r"^[^@\s]+@[^@\s]+\.[^@\s]+$"
 
 class ORMModel(BaseModel):
     model_config = ConfigDict(from_attributes=True)
+
+
+# --- errors (backend.errors sends these; backend.docs puts them into the OpenAPI) ----------
+
+
+class ErrorOut(BaseModel):
+    """Every error: a message for people and the culprit (a field, a path parameter...)."""
+
+    detail: str
+    where: str | None
+
+
+class Problem(BaseModel):
+    where: str | None
+    message: str
+
+
+class ValidationErrorOut(ErrorOut):
+    """A 422: the first problem in ``detail`` / ``where``, all of them in ``problems``."""
+
+    problems: list[Problem] | None = None
 
 
 # --- auth and users -------------------------------------------------------------------------
@@ -31,13 +54,53 @@ class PasswordChangeIn(BaseModel):
     new_password: str = Field(min_length=8, max_length=1000)
 
 
-class InstitutionIn(BaseModel):
+class LicenceFields(BaseModel):
+    """A licence URI and a credit line, checked the same way wherever they are set."""
+
+    licence: str | None = Field(
+        default=None,
+        max_length=300,
+        # Documented, and checked by check_licence with a message naming what is expected.
+        json_schema_extra={"pattern": RIGHTS_PATTERN.pattern},
+        description=LICENCE_DESCRIPTION,
+    )
+    attribution: str | None = Field(
+        default=None, max_length=500, description='the credit line, e.g. "Courtesy of ..."'
+    )
+
+    @field_validator("licence", mode="after")
+    @classmethod
+    def _licence(cls, value):
+        return check_licence(value)
+
+    @field_validator("attribution", mode="before")
+    @classmethod
+    def _attribution(cls, value):
+        return (value.strip() or None) if isinstance(value, str) else value
+
+
+class InstitutionIn(LicenceFields):
     name: str = Field(min_length=1, max_length=200)
+
+    @field_validator("name", mode="after")
+    @classmethod
+    def _name(cls, value: str) -> str:
+        if not value.strip():  # crud refuses a blank name: say so here, not as a 500
+            raise ValueError("must not be blank")
+        return value.strip()
+
+
+class InstitutionUpdate(LicenceFields):
+    """The defaults of the institution's tablets (``null`` clears one)."""
+
+    model_config = ConfigDict(extra="forbid")
 
 
 class InstitutionOut(ORMModel):
     id: int
     name: str
+    licence: str | None = None
+    attribution: str | None = None
     created_at: datetime
 
 
@@ -73,7 +136,7 @@ class UserUpdate(BaseModel):
     password: str | None = Field(default=None, min_length=8, max_length=1000)
     role: Role | None = None
     institution_id: RowId | None = None
-    is_active: bool | None = None
+    is_active: StrictBool | None = None
 
 
 class TokenCreate(BaseModel):
@@ -113,7 +176,7 @@ _TEXT_FIELDS = [
 ]
 
 
-class TabletFields(BaseModel):
+class TabletFields(LicenceFields):
     """Catalogue fields shared by create and update (all optional here)."""
 
     model_config = ConfigDict(extra="forbid")
@@ -135,7 +198,7 @@ class TabletFields(BaseModel):
     thickness_mm: float | None = Field(default=None, gt=0, le=2000)
     primary_publication: str | None = Field(default=None, max_length=5000)
     notes: str | None = Field(default=None, max_length=20000)
-    is_public: bool | None = None
+    is_public: StrictBool | None = None  # 0 / "yes" are refused, not read as booleans
     extra: dict[str, Any] | None = None
 
     @field_validator(*[f for f in _TEXT_FIELDS if f != "designation"], mode="before")
@@ -180,6 +243,13 @@ class TabletOut(ORMModel):
     thickness_mm: float | None
     primary_publication: str | None
     notes: str | None
+    licence: str | None = Field(description="the record's own licence (null: the institution's)")
+    attribution: str | None
+    effective_licence: str | None = Field(
+        default=None, description="the licence that applies: the record's or its institution's"
+    )
+    effective_attribution: str | None = None
+    cdli_url: str | None = Field(default=None, description="the CDLI artifact page (P-numbers)")
     institution_id: int | None
     institution: str | None = None
     is_public: bool
@@ -190,13 +260,14 @@ class TabletOut(ORMModel):
 
     @classmethod
     def of(cls, tablet, *, api_prefix: str = "/api/v1") -> TabletOut:
-        data = {
-            name: getattr(tablet, name)
-            for name in cls.model_fields
-            if name not in ("url", "institution")
-        }
+        derived = ("url", "institution", "effective_licence", "effective_attribution", "cdli_url")
+        data = {name: getattr(tablet, name) for name in cls.model_fields if name not in derived}
         data["url"] = f"{api_prefix}/tablets/{tablet.id}"
         data["institution"] = tablet.institution.name if tablet.institution else None
+        applies = effective(tablet)
+        data["effective_licence"] = applies.licence
+        data["effective_attribution"] = applies.attribution
+        data["cdli_url"] = cdli_url(tablet.p_number)
         return cls.model_validate(data)
 
 

@@ -27,14 +27,39 @@ from sqlalchemy import (
 )
 from sqlalchemy import Enum as SAEnum
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+from sqlalchemy.types import TypeDecorator
 
 
 def utcnow() -> datetime:
     return datetime.now(UTC)
 
 
+class UTCDateTime(TypeDecorator):
+    """A timestamp that is always read back as an aware datetime in UTC.
+
+    SQLite keeps no offset (it returns naive datetimes) and PostgreSQL returns the session's
+    time zone: stored values are UTC (naive ones are taken as UTC), read values get
+    ``tzinfo=UTC``, so every API answer says ``+00:00`` whatever the database.
+    """
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value, dialect):
+        if isinstance(value, datetime):
+            value = value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+            if dialect.name == "sqlite":
+                value = value.replace(tzinfo=None)  # stored as text: one format for all rows
+        return value
+
+    def process_result_value(self, value, dialect):
+        if isinstance(value, datetime):
+            return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+        return value
+
+
 class Base(DeclarativeBase):
-    type_annotation_map = {dict[str, Any]: JSON, list[Any]: JSON, datetime: DateTime(timezone=True)}
+    type_annotation_map = {dict[str, Any]: JSON, list[Any]: JSON, datetime: UTCDateTime()}
 
 
 def _enum(cls: type[enum.Enum], name: str) -> SAEnum:
@@ -80,6 +105,9 @@ class Institution(Base):
 
     id: Mapped[int] = mapped_column(primary_key=True)
     name: Mapped[str] = mapped_column(String(200), unique=True)
+    # Defaults for the institution's tablets and models that set none (backend.licences).
+    licence: Mapped[str | None] = mapped_column(String(300))
+    attribution: Mapped[str | None] = mapped_column(String(500))
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
 
@@ -138,6 +166,9 @@ class Tablet(Base):
     thickness_mm: Mapped[float | None] = mapped_column(Float)
     primary_publication: Mapped[str | None] = mapped_column(Text)
     notes: Mapped[str | None] = mapped_column(Text)
+    # A Creative Commons / RightsStatements.org URI and a credit line; None: the institution's.
+    licence: Mapped[str | None] = mapped_column(String(300))
+    attribution: Mapped[str | None] = mapped_column(String(500))
     institution_id: Mapped[int | None] = mapped_column(
         ForeignKey("institutions.id", ondelete="SET NULL"), index=True
     )
@@ -252,6 +283,9 @@ class Model(Base):
     storage_prefix: Mapped[str] = mapped_column(String(500))
     report: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     assets: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    # None: the tablet's (a model made elsewhere may carry its maker's licence and credit).
+    licence: Mapped[str | None] = mapped_column(String(300))
+    attribution: Mapped[str | None] = mapped_column(String(500))
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
     __table_args__ = (UniqueConstraint("scan_id", "version", name="uq_models_scan_version"),)

@@ -54,6 +54,9 @@ PYEOF
     2> >(grep -v "is neither a file nor a directory" >&2)
   .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[all]" \
     2> >(grep -v "is neither a file nor a directory" >&2)
+  # IIIF manifest validation in tests; --no-deps: its Pillow<=12 cap would undo our pin.
+  .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps "iiif-prezi3==3.1.1" \
+    2> >(grep -v "is neither a file nor a directory" >&2)
   rm -f .venv/.installed-*
   touch "$stamp"
 fi

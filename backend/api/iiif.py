@@ -1,8 +1,10 @@
-"""IIIF Presentation 3.0: ``GET /tablets/{id}/iiif/manifest.json`` (and its Scenes by id).
+"""IIIF: ``GET /tablets/{id}/iiif/manifest.json`` (Presentation 3, relightable 2.5-D faces)
+and ``GET /tablets/{id}/iiif/3d/manifest.json`` (the 3-D models, Presentation 4 draft).
 
-Every ``id`` in the manifest dereferences: the manifest itself, the asset URLs of the model
-versions, and the Scenes / AnnotationPages / Annotations, served by the second route from
-the same document. The newest model version of each face is shown.
+Every ``id`` in both manifests dereferences: the manifests, the asset URLs of the model
+versions, and the Canvases / Scenes / AnnotationPages / Annotations / services, served by
+the ``canvas`` and ``3d/scene`` routes from the same documents. The newest model version of
+each face is shown.
 """
 
 from __future__ import annotations
@@ -12,10 +14,23 @@ from fastapi.responses import JSONResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from backend import licences
 from backend.api.deps import ReadableTablet, SessionDep, SettingsDep
 from backend.api.models import StorageErrorRoute
 from backend.errors import not_found
-from backend.iiif import CONTEXT, MEDIA_TYPE, WHOLE, FaceModel, build_manifest, find_by_id
+from backend.iiif import (
+    CONTEXT,
+    CONTEXT_3D,
+    MEDIA_TYPE,
+    MEDIA_TYPE_3D,
+    WHOLE,
+    FaceModel,
+    Provenance,
+    build_3d_manifest,
+    build_manifest,
+    find_by_id,
+    has_canvas,
+)
 from backend.tables import Model, Scan, Tablet
 
 router = APIRouter(tags=["iiif"], route_class=StorageErrorRoute)
@@ -38,7 +53,6 @@ FIELDS = [
     "height_mm",
     "width_mm",
     "thickness_mm",
-    "extra",
 ]
 
 
@@ -56,53 +70,126 @@ def newest_models(session: Session, tablet_id: int) -> dict[str, Model]:
     return newest
 
 
-def _manifest(session: Session, settings, tablet: Tablet) -> dict:
+def _grid(report: dict) -> tuple[int | None, int | None, float | None]:
+    size = report.get("image_size") if isinstance(report, dict) else None
+    width = size.get("width") if isinstance(size, dict) else None
+    height = size.get("height") if isinstance(size, dict) else None
+    pixel = report.get("pixel_size_um") if isinstance(report, dict) else None
+    ok = all(isinstance(v, int) and v > 0 for v in (width, height))
+    return (
+        (width, height, float(pixel) if isinstance(pixel, int | float) and pixel > 0 else None)
+        if ok
+        else (None, None, None)
+    )
+
+
+def tablet_urls(settings, tablet: Tablet) -> dict[str, str | None]:
+    """Absolute URLs of a tablet: its record, its manifests and its page (if served)."""
     # The configured public URL, never the request's Host header: a forged Host must not
     # put another site's address into ids that harvesters store and follow.
     base = settings.resolved_public_url
     api = f"{base}{settings.api_prefix}"
-    models = newest_models(session, tablet.id)
-    if not models:
-        raise not_found(f"a 3-D model of tablet {tablet.id}", where="tablet_id")
-    face_models = [
-        FaceModel(
-            face=face,
-            model_id=model.id,
-            version=model.version,
-            asset_urls={
-                name: f"{api}/models/{model.id}/assets/{name}" for name in (model.assets or {})
-            },
-        )
-        for face, model in models.items()
-        if "model.glb" in (model.assets or {})
-    ]
-    if not face_models:
-        raise not_found(f"a 3-D model of tablet {tablet.id}", where="tablet_id")
     dist = settings.resolved_frontend_dist
-    homepage = f"{base}/tablet.html?id={tablet.id}" if dist is not None and dist.is_dir() else None
+    return {
+        "api": api,
+        "record": f"{api}/tablets/{tablet.id}",
+        "manifest": f"{api}/tablets/{tablet.id}/iiif/manifest.json",
+        "manifest_3d": f"{api}/tablets/{tablet.id}/iiif/3d/manifest.json",
+        "page": f"{base}/tablet.html?id={tablet.id}"
+        if dist is not None and dist.is_dir()
+        else None,
+    }
+
+
+def _inputs(session: Session, settings, tablet: Tablet):
+    urls = tablet_urls(settings, tablet)
+    models = newest_models(session, tablet.id)
+    face_models = []
+    for face, model in models.items():
+        width, height, pixel = _grid(model.report or {})
+        face_models.append(
+            FaceModel(
+                face=face,
+                model_id=model.id,
+                version=model.version,
+                asset_urls={
+                    name: f"{urls['api']}/models/{model.id}/assets/{name}"
+                    for name in (model.assets or {})
+                },
+                width_px=width,
+                height_px=height,
+                pixel_size_um=pixel,
+            )
+        )
+    licence = licences.effective(tablet)
+    fields = {name: getattr(tablet, name) for name in FIELDS}
+    return urls, face_models, fields, licence
+
+
+def _manifest(session: Session, settings, tablet: Tablet) -> dict:
+    urls, face_models, fields, licence = _inputs(session, settings, tablet)
+    if not any(has_canvas(f) for f in face_models):
+        raise not_found(f"a relightable scan of tablet {tablet.id}", where="tablet_id")
+    links = {}
+    if any("model.glb" in f.asset_urls for f in face_models):
+        links["3-D models (IIIF Presentation 4 draft)"] = urls["manifest_3d"]
     return build_manifest(
-        manifest_id=f"{api}/tablets/{tablet.id}/iiif/manifest.json",
-        fields={name: getattr(tablet, name) for name in FIELDS},
+        manifest_id=urls["manifest"],
+        fields=fields,
         face_models=face_models,
-        homepage=homepage,
-        institution=tablet.institution.name if tablet.institution else None,
+        provenance=Provenance(licence.licence, licence.attribution, links),
+        record_url=urls["record"],
+        homepage=urls["page"],
     )
+
+
+def _manifest_3d(session: Session, settings, tablet: Tablet) -> dict:
+    urls, face_models, fields, licence = _inputs(session, settings, tablet)
+    if not any("model.glb" in f.asset_urls for f in face_models):
+        raise not_found(f"a 3-D model of tablet {tablet.id}", where="tablet_id")
+    return build_3d_manifest(
+        manifest_id=urls["manifest_3d"],
+        fields=fields,
+        face_models=face_models,
+        provenance=Provenance(licence.licence, licence.attribution),
+        record_url=urls["record"],
+        homepage=urls["page"],
+    )
+
+
+def _part(manifest: dict, prefix: str, part: str, context: str, media_type: str):
+    wanted = manifest["id"].rsplit("/", 1)[0] + f"/{prefix}/{part}"
+    found = find_by_id(manifest, wanted)
+    if found is None:
+        raise not_found(f"IIIF resource {prefix}/{part}", where="part")
+    return JSONResponse({"@context": context, **found}, media_type=media_type)
 
 
 @router.get("/tablets/{tablet_id}/iiif/manifest.json", response_class=JSONResponse)
 def read_manifest(tablet: ReadableTablet, session: SessionDep, settings: SettingsDep):
-    """The IIIF Presentation 3.0 Manifest of the tablet (404 until a model exists)."""
+    """The IIIF Presentation 3.0 Manifest: one canvas per scanned face (404 until one exists)."""
     return JSONResponse(_manifest(session, settings, tablet), media_type=MEDIA_TYPE)
 
 
-@router.get("/tablets/{tablet_id}/iiif/scene/{part:path}", response_class=JSONResponse)
+@router.get("/tablets/{tablet_id}/iiif/canvas/{part:path}", response_class=JSONResponse)
 def read_manifest_part(
     part: str, tablet: ReadableTablet, session: SessionDep, settings: SettingsDep
 ):
-    """A Scene, AnnotationPage or Annotation of the manifest, by its id."""
+    """A Canvas, AnnotationPage, Annotation or service of the manifest, by its id."""
     manifest = _manifest(session, settings, tablet)
-    wanted = manifest["id"].rsplit("/", 1)[0] + f"/scene/{part}"
-    found = find_by_id(manifest, wanted)
-    if found is None:
-        raise not_found(f"IIIF resource scene/{part}", where="part")
-    return JSONResponse({"@context": CONTEXT, **found}, media_type=MEDIA_TYPE)
+    return _part(manifest, "canvas", part, CONTEXT, MEDIA_TYPE)
+
+
+@router.get("/tablets/{tablet_id}/iiif/3d/manifest.json", response_class=JSONResponse)
+def read_manifest_3d(tablet: ReadableTablet, session: SessionDep, settings: SettingsDep):
+    """The 3-D models as a IIIF Presentation 4 draft Manifest of Scenes (404 until one)."""
+    return JSONResponse(_manifest_3d(session, settings, tablet), media_type=MEDIA_TYPE_3D)
+
+
+@router.get("/tablets/{tablet_id}/iiif/3d/scene/{part:path}", response_class=JSONResponse)
+def read_manifest_3d_part(
+    part: str, tablet: ReadableTablet, session: SessionDep, settings: SettingsDep
+):
+    """A Scene, AnnotationPage or Annotation of the 3-D manifest, by its id."""
+    manifest = _manifest_3d(session, settings, tablet)
+    return _part(manifest, "scene", part, CONTEXT_3D, MEDIA_TYPE_3D)

@@ -32,7 +32,12 @@ from backend.tables import Role
 
 router = APIRouter(prefix="/tablets", tags=["tablets"])
 
-CSV_COLUMNS = [name for name in TabletOut.model_fields if name != "extra"]
+# Exports are read outside the library (spreadsheets, other archives): every URL absolute,
+# from the configured public URL, with the CDLI link and the licence that applies.
+CSV_COLUMNS = [
+    *(name for name in TabletOut.model_fields if name != "extra"),
+    "iiif_manifest",
+]
 EXPORT_MAX_ROWS = 200_000
 _ACCEPT_FORMATS = {
     "text/csv": "csv",
@@ -90,7 +95,13 @@ async def search(
     collection: Filter = None,
     language: Filter = None,
     has_3d: bool | None = None,
-    sort: Annotated[str | None, Query(description=f"one of {', '.join(SORT_CHOICES)}")] = None,
+    sort: Annotated[
+        str | None,
+        Query(
+            description=f"one of {', '.join(SORT_CHOICES)}",
+            json_schema_extra={"enum": list(SORT_CHOICES)},  # documented as checked below
+        ),
+    ] = None,
     page: Annotated[int, Query(ge=1, le=100_000)] = 1,
     page_size: Annotated[int, Query(ge=1)] = 25,
     format: Annotated[
@@ -154,16 +165,26 @@ async def search(
         if body is None:
             body = await run_in_threadpool(snapshot.cached_page, session, user, key, render)
         return Response(body, media_type="application/json")
-    return await run_in_threadpool(_export, session, query, user, fmt, prefix)
+    absolute = f"{settings.resolved_public_url}{prefix}"
+    return await run_in_threadpool(_export, session, query, user, fmt, absolute)
 
 
-def _export(session, query: SearchQuery, user, fmt: str, prefix: str) -> StreamingResponse:
+def export_row(tablet, absolute_prefix: str) -> dict:
+    """One exported record: its fields, absolute URLs, CDLI link and licence."""
+    row = TabletOut.of(tablet, api_prefix=absolute_prefix).model_dump(mode="json")
+    row["iiif_manifest"] = (
+        f"{absolute_prefix}/tablets/{tablet.id}/iiif/manifest.json" if tablet.has_3d else None
+    )
+    return row
+
+
+def _export(session, query: SearchQuery, user, fmt: str, absolute_prefix: str) -> StreamingResponse:
     result = search_tablets(session, query, user=user, with_facets=False, paged=False)
     if result.total > EXPORT_MAX_ROWS:
         raise ApiError(
             422, f"too many matches to export ({result.total} > {EXPORT_MAX_ROWS})", where="query"
         )
-    rows = [TabletOut.of(t, api_prefix=prefix).model_dump(mode="json") for t in result.items]
+    rows = [export_row(t, absolute_prefix) for t in result.items]
     headers = {"X-Total-Count": str(result.total)}
     if fmt == "csv":
         headers["Content-Disposition"] = 'attachment; filename="tablets.csv"'

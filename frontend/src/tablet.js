@@ -5,6 +5,7 @@
 import * as api from './api.js';
 import { el, formatDate, showError } from './dom.js';
 import { bindViewerUi } from './viewer/ui.js';
+import { bindCite } from './viewer/citeUi.js';
 import { decodeViewState, encodeViewState } from './viewer/permalink.js';
 import { createViewer } from './viewer/viewer.js';
 
@@ -49,7 +50,33 @@ ui = bindViewerUi(viewer, {
   getPixelSizeUm: () => Number(currentModel?.report?.pixel_size_um) || null,
   baseName: () => (tablet?.designation ?? `tablet-${tabletId}`).replace(/[^\w.-]+/g, '_'),
   face: () => currentModel?.report?.scan?.face ?? null,
+  describe: describeShown,
+  measureChanged: () => currentModel && scheduleHash(),
 });
+bindCite({
+  getAbout: () => {
+    if (!currentModel) return null;
+    const state = viewer.getState();
+    return {
+      ...describeShown(),
+      institution: tablet?.institution ?? null,
+      view: { mode: state.shading.mode, light: state.light, measure: ui.measurement() },
+      permalink: ui.permalinkUrl(),
+    };
+  },
+});
+
+/** The tablet and model on screen, for citations and exported files. */
+function describeShown() {
+  return {
+    tablet: tablet?.designation ?? `tablet ${tabletId}`,
+    pNumber: tablet?.p_number ?? null,
+    modelId: currentModel?.id,
+    modelVersion: currentModel?.version,
+    licence: currentModel?.licence ?? tablet?.effective_licence ?? null,
+    attribution: currentModel?.attribution ?? tablet?.effective_attribution ?? null,
+  };
+}
 // For the console and for tests: the page's viewer.
 window.hammurabi = { viewer, ui };
 
@@ -58,6 +85,7 @@ function scheduleHash() {
   hashTimer = setTimeout(() => {
     const state = viewer.getState();
     state.model = currentModel.id;
+    state.measure = ui.measurement();
     history.replaceState(null, '', `#${encodeViewState(state)}`);
   }, 250);
 }
@@ -212,6 +240,7 @@ async function showModel(modelId) {
       const { unknownParts } = viewer.setState({ ...restore.state, model: model.id });
       const ignored = restore.ignored.concat(unknownParts.map((n) => `face ${JSON.stringify(n)} (not in this model)`));
       if (ignored.length) ui.setLinkNotice(`Parts of the link could not be used: ${ignored.join(', ')}.`);
+      if (restore.state.measure) ui.restoreMeasure(restore.state.measure);
     }
     renderFaces(model);
     scheduleHash();

@@ -192,7 +192,9 @@ class World:
             session.flush()
             return job.id
 
-    def new_model(self, tablet_id: int, *, assets: dict | None = None) -> int:
+    def new_model(
+        self, tablet_id: int, *, assets: dict | None = None, report: dict | None = None
+    ) -> int:
         """A model row (with its scan and succeeded job) of ``tablet_id``; returns its id."""
         scan_id = self.new_scan(tablet_id)
         job_id = self.new_job(tablet_id, scan_id=scan_id, state=JobState.succeeded)
@@ -203,7 +205,7 @@ class World:
                 job_id=job_id,
                 version=1,
                 storage_prefix=f"models/{uuid.uuid4().hex}",
-                report={},
+                report=report or {},
                 assets=assets or {},
             )
             session.add(model)

@@ -140,6 +140,14 @@ MATRIX: dict[str, list[Case]] = {
             json=lambda w, role: {"name": _unique("Museum")},
         )
     ],
+    "PATCH /api/v1/institutions/{institution_id}": [
+        Case(
+            "institution A's default licence: its staff and admins",
+            expect(401, 403, 200, 403, 200),
+            params=lambda w, role: {"institution_id": w.institution_a},
+            json=lambda w, role: {"licence": "https://creativecommons.org/licenses/by/4.0/"},
+        )
+    ],
     # --- tablets ----------------------------------------------------------------------------
     "GET /api/v1/tablets": [Case("anyone (results filtered)", expect(200, 200, 200, 200, 200))],
     "POST /api/v1/tablets": [
@@ -234,9 +242,16 @@ def _upload_of_private_a(world, _role):
         return {"upload_id": upload.id}
 
 
+# A model with what both IIIF manifests need: a GLB, an albedo and its image grid.
+_MODEL_ASSETS = {
+    name: {"size_bytes": 4, "sha256": "0" * 64} for name in ("model.glb", "albedo.png")
+}
+_MODEL_REPORT = {"pixel_size_um": 50, "image_size": {"width": 8, "height": 6}}
+
+
 def _private_tablet_of_a_with_model(world, _role):
     tablet_id = world.new_tablet()
-    world.new_model(tablet_id, assets={"model.glb": {"size_bytes": 4, "sha256": "0" * 64}})
+    world.new_model(tablet_id, assets=_MODEL_ASSETS, report=_MODEL_REPORT)
     return {"tablet_id": tablet_id}
 
 
@@ -246,7 +261,7 @@ def _private_a(world, _role):
 
 def _public_tablet_with_model(world, _role):
     tablet_id = world.new_tablet(is_public=True)
-    world.new_model(tablet_id, assets={"model.glb": {"size_bytes": 4, "sha256": "0" * 64}})
+    world.new_model(tablet_id, assets=_MODEL_ASSETS, report=_MODEL_REPORT)
     return {"tablet_id": tablet_id}
 
 
@@ -315,12 +330,34 @@ _OPTIONAL_ROWS = {
             params=lambda w, role: {"tablet_id": w.new_tablet(is_public=True)},
         ),
     ],
-    "GET /api/v1/tablets/{tablet_id}/iiif/scene/{part}": [
+    "GET /api/v1/tablets/{tablet_id}/iiif/canvas/{part}": [
         Case(
             "unknown part of private A: nobody learns more than 404",
             expect(404, 404, 404, 404, 404),
             params=lambda w, role: {"tablet_id": w.private_a, "part": "nothing"},
         ),
+        Case(
+            "the obverse Canvas of a private tablet of A with a model",
+            expect(404, 404, 200, 404, 200),
+            params=lambda w, role: {
+                **_private_tablet_of_a_with_model(w, role),
+                "part": "obverse",
+            },
+        ),
+    ],
+    "GET /api/v1/tablets/{tablet_id}/iiif/3d/manifest.json": [
+        Case(
+            "private tablet of A with a model",
+            expect(404, 404, 200, 404, 200),
+            params=_private_tablet_of_a_with_model,
+        ),
+        Case(
+            "public tablet with a model",
+            expect(200, 200, 200, 200, 200),
+            params=_public_tablet_with_model,
+        ),
+    ],
+    "GET /api/v1/tablets/{tablet_id}/iiif/3d/scene/{part}": [
         Case(
             "the obverse Scene of a private tablet of A with a model",
             expect(404, 404, 200, 404, 200),

@@ -122,7 +122,9 @@ def test_csv_and_jsonl_export_every_match(client, catalogue):
     assert response.headers["content-type"].startswith("text/csv")
     rows = list(csv.DictReader(io.StringIO(response.text)))
     assert sorted(r["designation"] for r in rows) == ["BM 80150", "K 3375"]
-    assert rows[0]["url"].startswith("/api/v1/tablets/")
+    # absolute, from the configured public URL: a spreadsheet has no base to resolve against
+    base = client.app.state.settings.resolved_public_url
+    assert rows[0]["url"].startswith(f"{base}/api/v1/tablets/")
 
     response = client.get(
         "/api/v1/tablets", params={"genre": "literary"}, headers={"Accept": "application/x-ndjson"}

@@ -1,6 +1,7 @@
 /**
- * Permalinks: the viewer state that makes a reading citable — camera, light, shading and the
- * hidden faces of a whole-tablet model — as
+ * Permalinks: the viewer state that makes a reading citable — camera, light, shading, the
+ * hidden faces of a whole-tablet model and the measurement on screen (a distance or a height
+ * profile between two points, in the model's millimetres) — as
  * the URL fragment of a tablet page (`tablet.html?id=12#m=31&az=45&…`). Pure functions.
  *
  * The fragment is never sent to the server, so a permalink cannot break caching, and it keeps
@@ -30,10 +31,13 @@ export function defaultViewState() {
     light: { azimuthDeg: 315, polarDeg: 45, intensity: 1, ambient: 0.15, gloss: 0, follow: false },
     shading: { mode: 'natural', curvatureScale: 0, exaggeration: 2, quality: null },
     hidden: [], // names of hidden parts (faces of a whole-tablet model); [] = all shown
+    measure: null, // {tool: 'distance' | 'profile', points: [[x, y, z], [x, y, z]]} in mm
   };
 }
 
 export const MAX_HIDDEN_PARTS = 100;
+/** Measurement tools a link may carry, by their one-letter code. */
+const MEASURE_TOOLS = Object.freeze({ distance: 'd', profile: 'p' });
 const MAX_PART_NAME = 200;
 
 /** A part name a link may carry: any text (glTF node names are free) without control characters. */
@@ -86,6 +90,12 @@ export function encodeViewState(state) {
   if (s.quality) p.set('qm', s.quality);
   // One `hide` per name, not a comma list: node names may contain commas.
   for (const name of state.hidden ?? []) p.append('hide', name);
+  const m = state.measure;
+  if (m && MEASURE_TOOLS[m.tool] && m.points?.length === 2) {
+    p.set('mt', MEASURE_TOOLS[m.tool]);
+    p.set('ma', vec(m.points[0]));
+    p.set('mb', vec(m.points[1]));
+  }
   return p.toString();
 }
 
@@ -161,5 +171,16 @@ export function decodeViewState(fragment) {
   const names = [...new Set(valid)];
   state.hidden = names.slice(0, MAX_HIDDEN_PARTS);
   if (valid.length !== hide.length || names.length > MAX_HIDDEN_PARTS) ignored.push('hide');
+
+  if (p.has('mt') || p.has('ma') || p.has('mb')) {
+    const tool = Object.keys(MEASURE_TOOLS).find((k) => MEASURE_TOOLS[k] === p.get('mt'));
+    const a = parseVec(p.get('ma'));
+    const b = parseVec(p.get('mb'));
+    if (tool && a && b && Math.hypot(...a.map((v, i) => v - b[i])) > 0) {
+      state.measure = { tool, points: [a, b] };
+    } else {
+      ignored.push('measurement');
+    }
+  }
   return { state, ignored };
 }

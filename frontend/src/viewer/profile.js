@@ -66,11 +66,32 @@ export function sampleProfile(grid, startMm, endMm, { samples } = {}) {
 }
 
 /**
- * Profile as CSV text ("distance_mm,height_um"), NaN written as an empty field.
+ * Profile as CSV text: `#` comment lines saying what was measured (tablet, model id and
+ * version, units, end points in mm, licence, permalink), then "distance_mm,height_um" rows
+ * with NaN written as an empty field. Spreadsheets and `numpy.loadtxt(comments='#')` skip
+ * the comments; a reader of the file alone still knows what it is.
  * @param {{distanceMm: ArrayLike<number>, heightUm: ArrayLike<number>}} profile
+ * @param {{tablet?: string, pNumber?: string|null, modelId?: number, modelVersion?: number,
+ *   start?: number[], end?: number[], licence?: string|null, attribution?: string|null,
+ *   permalink?: string, pixelSizeUm?: number|null}} [about]
  */
-export function profileToCsv(profile) {
-  const lines = ['distance_mm,height_um'];
+export function profileToCsv(profile, about = {}) {
+  const clean = (v) => String(v).replace(/[\r\n]+/g, ' ');
+  const point = (p) => p.map((v) => v.toFixed(4)).join(', ');
+  const header = [
+    ['tablet', about.tablet && `${about.tablet}${about.pNumber ? ` (${about.pNumber})` : ''}`],
+    ['model', about.modelId != null && `id ${about.modelId}, version ${about.modelVersion ?? '?'}`],
+    ['units', 'distance_mm: millimetres along the line; height_um: micrometres toward the camera'],
+    ['start_mm', about.start && point(about.start)],
+    ['end_mm', about.end && point(about.end)],
+    ['pixel_size_um', about.pixelSizeUm],
+    ['licence', about.licence],
+    ['attribution', about.attribution],
+    ['permalink', about.permalink],
+  ]
+    .filter(([, v]) => v != null && v !== false && v !== '')
+    .map(([k, v]) => `# ${k}: ${clean(v)}`);
+  const lines = [...header, 'distance_mm,height_um'];
   for (let i = 0; i < profile.distanceMm.length; i++) {
     const h = profile.heightUm[i];
     lines.push(`${profile.distanceMm[i].toFixed(4)},${Number.isFinite(h) ? h.toFixed(2) : ''}`);

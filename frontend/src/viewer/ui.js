@@ -8,6 +8,7 @@ import { actionForKey, SHORTCUTS } from './keyboard.js';
 import { clampPolar, compassLabel, RAKING_PRESETS, wrapAzimuth } from './light.js';
 import { createLightWidget } from './lightWidget.js';
 import { createPicker, distanceMm, pixelSizeFromMesh } from './measure.js';
+import { annotateScreenshot, shotMmPerPixel } from './shot.js';
 import { encodeViewState } from './permalink.js';
 import { niceStep, profileToCsv, sampleProfile } from './profile.js';
 import { parseNpy } from './npy.js';
@@ -65,11 +66,13 @@ export function bindViewerUi(viewer, context) {
   // --- measuring --------------------------------------------------------------------------
   let tool = null; // 'distance' | 'profile' | null
   let lastProfile = null;
+  let lastMeasure = null; // {tool, points, lengthMm}: what a permalink restores
+
   const picker = createPicker(viewer, canvas, {
     onPoint: (points) => {
       if (points.length === 1) setReadout(tool === 'profile' ? 'Click the end of the profile line.' : 'Click the second point.');
     },
-    onDone: (points) => (tool === 'profile' ? showProfile(points) : showDistance(points)),
+    onDone: (points) => showMeasure(tool, points),
   });
   function setTool(next) {
     tool = tool === next ? null : next;
@@ -85,6 +88,11 @@ export function bindViewerUi(viewer, context) {
   }
   function setReadout(text) {
     $('readout').textContent = text;
+  }
+  function showMeasure(kind, points) {
+    lastMeasure = { tool: kind, points: points.map((p) => [...p]), lengthMm: distanceMm(points[0], points[1]) };
+    context.measureChanged?.();
+    return kind === 'profile' ? showProfile(points) : showDistance(points);
   }
   function showDistance(points) {
     const d = distanceMm(points[0], points[1]);
@@ -125,7 +133,15 @@ export function bindViewerUi(viewer, context) {
     $('profile-panel').hidden = true;
   });
   $('profile-csv').addEventListener('click', () => {
-    if (lastProfile) download(new Blob([profileToCsv(lastProfile)], { type: 'text/csv' }), `${context.baseName()}-profile.csv`);
+    if (!lastProfile) return;
+    const about = {
+      ...(context.describe?.() ?? {}),
+      start: lastMeasure?.points[0],
+      end: lastMeasure?.points[1],
+      pixelSizeUm: heightGrid?.grid.pixelSizeUm,
+      permalink: permalinkUrl(),
+    };
+    download(new Blob([profileToCsv(lastProfile, about)], { type: 'text/csv' }), `${context.baseName()}-profile.csv`);
   });
 
   // --- share ------------------------------------------------------------------------------
@@ -133,15 +149,42 @@ export function bindViewerUi(viewer, context) {
     const width = Math.round(Number($('shot-w').value));
     const height = Math.round(Number($('shot-h').value));
     try {
-      const blob = await viewer.screenshot({ width, height });
+      const shot = await viewer.screenshot({ width, height });
+      const mmPerPx = shotMmPerPixel({
+        mmPerScreenPx: viewer.mmPerPixel(),
+        canvasW: canvas.clientWidth || 1,
+        canvasH: canvas.clientHeight || 1,
+        shotW: width,
+        shotH: height,
+      });
+      const about = context.describe?.() ?? {};
+      const title = about.tablet
+        ? `${about.tablet}${about.pNumber ? ` (${about.pNumber})` : ''}, model ${about.modelId} version ${about.modelVersion}`
+        : null;
+      const { blob } = await annotateScreenshot(shot, {
+        mmPerPx,
+        text: {
+          Title: title,
+          Description: `${viewer.shading.mode} shading, light azimuth ${Math.round(viewer.light.azimuthDeg)}°, polar ${Math.round(viewer.light.polarDeg)}°`,
+          Copyright: about.licence,
+          Author: about.attribution,
+          Source: permalinkUrl(),
+          'Creation Time': new Date().toISOString(),
+          Software: 'Digital Hammurabi viewer',
+        },
+      });
       download(blob, `${context.baseName()}-${viewer.shading.mode}.png`);
     } catch (err) {
       showNotice(`Screenshot failed: ${err.message}`);
     }
   }
-  function permalink() {
+  function permalinkUrl() {
     const url = new URL(window.location.href);
-    url.hash = encodeViewState(viewer.getState());
+    url.hash = encodeViewState({ ...viewer.getState(), measure: lastMeasure });
+    return url.toString();
+  }
+  function permalink() {
+    const url = new URL(permalinkUrl());
     $('permalink-text').value = url.toString();
     $('permalink-text').select();
     navigator.clipboard?.writeText(url.toString()).catch(() => {});
@@ -339,9 +382,19 @@ export function bindViewerUi(viewer, context) {
     stopTools() {
       if (tool) setTool(tool);
       heightGrid = null;
+      lastMeasure = null;
       $('profile-panel').hidden = true;
     },
     permalink,
+    permalinkUrl,
+    /** The measurement on screen ({tool, points, lengthMm}) or null. */
+    measurement: () => lastMeasure,
+    /** Show a measurement a permalink carried: marks, readout and (for a profile) the chart. */
+    restoreMeasure(measure) {
+      if (!measure) return;
+      viewer.setMarks(measure.points);
+      return showMeasure(measure.tool, measure.points);
+    },
     /** A lasting notice about the opened link (null: none), shown before any map notice. */
     setLinkNotice(text) {
       linkNotice = text || null;

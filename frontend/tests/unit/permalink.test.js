@@ -31,6 +31,7 @@ function sampleState(i) {
       quality: i % 2 ? 'quality_residual.png' : null,
     },
     hidden: [[], ['reverse'], ['top', 'left edge, 2nd scan'], ['obverse & co', 'r=1#x']][i % 4],
+    measure: i % 3 ? null : { tool: i % 2 ? 'profile' : 'distance', points: [[i, 2.5, -0.5], [20, 10 + i, 0.25]] },
   };
 }
 
@@ -95,5 +96,25 @@ describe('permalink state', () => {
     expect(capped.state.hidden).toHaveLength(100);
     expect(capped.ignored).toEqual(['hide']);
     expect(decodeViewState('hide=reverse&hide=reverse').ignored).toEqual([]);
+  });
+});
+
+describe('measurements in permalinks', () => {
+  it('round-trips a distance and a profile between two points in mm', () => {
+    for (const tool of ['distance', 'profile']) {
+      const state = { ...defaultViewState(), measure: { tool, points: [[1.25, 2.5, -0.125], [30.5, 12, 0.75]] } };
+      const { state: back, ignored } = decodeViewState(encodeViewState(state));
+      expect(ignored).toEqual([]);
+      expect(back.measure).toEqual(state.measure);
+    }
+  });
+
+  it('has no measurement by default and names a broken one', () => {
+    expect(decodeViewState('az=10').state.measure).toBeNull();
+    for (const bad of ['mt=x&ma=1,2,3&mb=4,5,6', 'mt=d&ma=1,2,3', 'mt=p&ma=1,2,3&mb=1,2,3', 'mt=d&ma=1,2&mb=4,5,6']) {
+      const { state, ignored } = decodeViewState(bad);
+      expect(state.measure).toBeNull();
+      expect(ignored).toContain('measurement');
+    }
   });
 });

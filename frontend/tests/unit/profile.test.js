@@ -62,9 +62,12 @@ describe('profile sampling', () => {
     expect(() => sampleProfile(g, [0, 0], [1, 1], { samples: 1 })).toThrow(/samples/);
   });
 
-  it('writes CSV with empty fields for NaN', () => {
+  it('writes CSV with its units and empty fields for NaN', () => {
     const csv = profileToCsv({ distanceMm: [0, 0.5], heightUm: [12.345, Number.NaN] });
-    expect(csv).toBe('distance_mm,height_um\n0.0000,12.35\n0.5000,\n');
+    expect(csv).toBe(
+      '# units: distance_mm: millimetres along the line; height_um: micrometres toward the camera\n' +
+        'distance_mm,height_um\n0.0000,12.35\n0.5000,\n',
+    );
   });
 });
 
