@@ -134,9 +134,11 @@ class UserCreate(BaseModel):
 
 class UserUpdate(BaseModel):
     password: str | None = Field(default=None, min_length=8, max_length=1000)
-    role: Role | None = None
+    # Omitted: kept. Never null, and the schema says so (schemathesis found the old
+    # `Role | None` documented a null that the route refused).
+    role: Role = Field(default=None, description="omit to keep; null is refused")
     institution_id: RowId | None = None
-    is_active: StrictBool | None = None
+    is_active: StrictBool = Field(default=None, description="omit to keep; null is refused")
 
 
 class TokenCreate(BaseModel):

@@ -96,6 +96,7 @@ BODIES = {
     "PATCH /api/v1/tablets/{tablet_id}": {"notes": "checked"},
     "POST /api/v1/tablets": {"designation": "New tablet"},
     "POST /api/v1/uploads": {"filename": "scan.zip", "size_bytes": 10},
+    "PATCH /api/v1/institutions/{institution_id}": {"attribution": "A museum"},
 }
 
 

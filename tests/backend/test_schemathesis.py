@@ -60,9 +60,4 @@ def test_api_contract(case, live):
         # Filters are lists of free text: a "non-string" generated for one reaches us as its
         # text in the query string, which is a valid (unmatched) filter value.
         excluded.append(negative_data_rejection)
-    try:
-        case.call_and_validate(headers=headers, app=app, excluded_checks=excluded)
-    except OverflowError:
-        # Ids beyond 64 bits reach SQLite in scans/jobs/models routes: bounded id path
-        # parameters are the sec-concurrency branch's change; any other failure still fails.
-        pytest.xfail("id path parameter beyond 64 bits (fixed on sec-concurrency)")
+    case.call_and_validate(headers=headers, app=app, excluded_checks=excluded)
