@@ -19,8 +19,10 @@ from pathlib import Path
 from sqlalchemy import select
 
 from backend import jobs
+from backend.licences import effective
 from backend.tables import Job, Model, Tablet
 from worker.register.io import SHADING_MAPS, RegisterInputError, write_output_dir
+from worker.register.plates import DEFAULT_LICENCE
 from worker.register.run import register_model_dirs
 
 __all__ = ["MODEL_FILES", "run_job"]
@@ -54,6 +56,18 @@ def _fail(session_factory, job_id: int, message: str) -> str:
     return "failed"
 
 
+def plate_licence_line(tablet) -> str:
+    """The plates' licence line: the licence and attribution that apply to the tablet
+    (its own, else its institution's), never one it was not given."""
+    if tablet is None:
+        return DEFAULT_LICENCE
+    stated = effective(tablet)
+    parts = [stated.licence or DEFAULT_LICENCE]
+    if stated.attribution:
+        parts.append(stated.attribution)
+    return " · ".join(parts)
+
+
 def run_job(job_id: int, session_factory, storage, progress: Callable[..., None]) -> str:
     """Register the tablet of job ``job_id``; "succeeded" or "failed" (with a message)."""
     with session_factory() as session:
@@ -67,6 +81,7 @@ def run_job(job_id: int, session_factory, storage, progress: Callable[..., None]
         p_number = tablet.p_number if tablet is not None else None
         title = f"{p_number} ({name})" if p_number and p_number != name else name
         name = p_number or name
+        licence = plate_licence_line(tablet)
         models = _latest_models(session, job.tablet_id)
     if len(models) < 2:
         return _fail(
@@ -88,7 +103,7 @@ def run_job(job_id: int, session_factory, storage, progress: Callable[..., None]
         progress("register", 0.2, force=True)
         safe = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in name)
         try:
-            files, report = register_model_dirs(dirs, name=safe, designation=title)
+            files, report = register_model_dirs(dirs, name=safe, designation=title, licence=licence)
         except (RegisterInputError, ValueError) as exc:
             return _fail(session_factory, job_id, f"registration: {exc}")
         files["model.glb"] = files["tablet.glb"]

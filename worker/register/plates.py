@@ -42,7 +42,9 @@ __all__ = [
 ]
 
 FACE_LABELS = {"o": "obv.", "r": "rev.", "te": "t.e.", "be": "b.e.", "le": "l.e.", "re": "r.e."}
-DEFAULT_LICENCE = "CC BY 4.0, Digital Hammurabi"
+# No licence is claimed for a tablet whose holder stated none (the library's job passes the
+# tablet's own licence and attribution: backend.licences.effective).
+DEFAULT_LICENCE = "not stated by the holder"
 KIND_CAPTIONS = {
     "natural": f"natural colour, lit from the upper left at {RAKING_POLAR_DEG:.0f}° from the "
     "view axis (the same light for every face)",

@@ -102,3 +102,21 @@ def test_register_job_with_one_model_fails_with_a_message(env, tmp_path):
     with capp.session_factory()() as session:
         job = session.get(Job, job_id)
         assert job.state == JobState.failed and "two or more scans" in job.error
+
+
+def test_plates_carry_the_tablets_own_licence_never_an_invented_one():
+    from types import SimpleNamespace as NS
+
+    from worker.register.job import plate_licence_line
+
+    museum = NS(name="British Museum", licence=None, attribution=None)
+    by = "https://creativecommons.org/licenses/by/4.0/"
+    own = NS(licence=by, attribution=None, owner="British Museum", institution=museum)
+    assert plate_licence_line(own) == f"{by} · Courtesy of British Museum"
+    museum_default = NS(
+        name="Yale", licence="http://rightsstatements.org/vocab/InC/1.0/", attribution="YBC"
+    )
+    inherited = NS(licence=None, attribution=None, owner=None, institution=museum_default)
+    assert plate_licence_line(inherited) == "http://rightsstatements.org/vocab/InC/1.0/ · YBC"
+    unstated = NS(licence=None, attribution=None, owner=None, institution=None)
+    assert plate_licence_line(unstated) == "not stated by the holder"
