@@ -228,6 +228,7 @@ def _mask(meas: Measurements) -> np.ndarray:
         has_height=has_h,
         modulation=meas.modulation,
         height_um=meas.fringe_height_um,
+        pixel_size_um=meas.pixel_size_um,
     )
 
 
