@@ -191,8 +191,25 @@ def physics_summary(sim: Path, scan: Scan) -> str:
     extra = [a for a in scan.args if a in ("default", "hard")]
     if not path.exists():
         return f"{scan.instrument}" + (f", noise {extra[0]}" if extra else "")
-    p = json.loads(path.read_text())["physics"]
+    doc = json.loads(path.read_text())
+    if "physics" not in doc:  # the Mitsuba renderer records its scene instead
+        clay = doc.get("clay") or {}
+        bits = [f"{doc.get('renderer', scan.instrument)} {doc.get('spp', '?')} spp"]
+        if "max_depth" in (doc.get("integrator") or {}):
+            bits.append(f"depth {doc['integrator']['max_depth']}")
+        if clay:
+            bits.append(
+                f"{clay.get('model', 'clay')} α {clay.get('alpha', float('nan')):.2g} "
+                f"spec {clay.get('specular', float('nan')):.2g}"
+            )
+        return ", ".join(bits + [f"noise {extra[0]}"] if extra else bits)
+    p = doc["physics"]
     out = []
+    if doc.get("renderer"):  # a renderer that also records its scene (Mitsuba)
+        clay = doc.get("clay") or {}
+        out.append(f"{doc['renderer']} {doc.get('spp', '?')} spp")
+        if clay:
+            out.append(f"{clay.get('model', 'clay')} α {clay.get('alpha', float('nan')):.2g}")
 
     def add(cond, text):  # text is a function: its fields may be None when cond is false
         if cond:
@@ -245,20 +262,24 @@ def run_scan(
     res = Result(scan)
     try:
         sim = simulate(scan, work, python, (trees or {}).get(scan.instrument))
-    except RuntimeError as exc:
-        res.error = str(exc)
+        man = json.loads((sim / "bundle" / "manifest.json").read_text())
+        res.pixel_size_um = float(man["camera"]["pixel_size_um"])
+        res.size = f"{man['camera']['width']}×{man['camera']['height']}"
+        res.physics = physics_summary(sim, scan)
+    except (RuntimeError, OSError, ValueError, KeyError) as exc:
+        # One scan the bench cannot read is reported in its row; the others still run.
+        res.error = f"{type(exc).__name__}: {exc}"
         return res
-    man = json.loads((sim / "bundle" / "manifest.json").read_text())
-    res.pixel_size_um = float(man["camera"]["pixel_size_um"])
-    res.size = f"{man['camera']['width']}×{man['camera']['height']}"
-    res.physics = physics_summary(sim, scan)
     with tempfile.TemporaryDirectory(prefix="robustness-") as tmp:
         for chain in chains:
             out = Path(tmp) / chain
             status, seconds, message = reconstruct(sim / "bundle", out, chain, python)
             entry: dict = {"exit": status, "seconds": seconds}
             if status == 0:
-                entry |= figures(sim, out)
+                try:
+                    entry |= figures(sim, out)
+                except (OSError, ValueError, KeyError) as exc:
+                    entry["message"] = f"model directory unreadable: {type(exc).__name__}: {exc}"
             else:
                 entry["message"] = message
             res.chains[chain] = entry

@@ -4,7 +4,8 @@ Evaluated pixels: tablet pixels (ground-truth mask) at least `edge_px` pixels fr
 edge, with a true slope under `max_slope_deg`. Heights are compared after removing the median
 offset (the reference plane of a scan is only known to the fringes' accuracy, and baselines
 from normals alone have none). Wedge depth: mean rim height minus bottom height, both read
-bilinearly at the points of gt/wedges.json from the reconstructed and the true height maps.
+bilinearly at the points of gt/wedges.json from the reconstructed and the true height maps,
+for the wedges whose bottom pixel was reconstructed.
 """
 
 from __future__ import annotations
@@ -79,7 +80,9 @@ def evaluate(
     for w in wedges:
         b = w["bottom"]
         r, c = int(round(b["row"])), int(round(b["col"]))
-        if not (0 <= r < gm.shape[0] and 0 <= c < gm.shape[1]) or not inner[r, c]:
+        # Only wedges the chain reconstructed: elsewhere h_fill is the median height, and
+        # the "depth error" would measure the wedge itself.
+        if not (0 <= r < gm.shape[0] and 0 <= c < gm.shape[1]) or not (inner[r, c] and recon[r, c]):
             continue
         depth_err.append(abs(wedge_depth_um(h_fill, w) - wedge_depth_um(gt_height_um, w)))
     return {
