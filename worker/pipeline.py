@@ -42,6 +42,7 @@ from worker.recon.quality import (
     fringe_blur_px,
     fringe_sigma_um,
     normal_sigma_rad,
+    tilt_bias_rad,
 )
 from worker.recon.walls import check_refinement, refine_cliff_heights
 
@@ -228,6 +229,7 @@ def _mask(meas: Measurements) -> np.ndarray:
         has_height=has_h,
         modulation=meas.modulation,
         height_um=meas.fringe_height_um,
+        pixel_size_um=meas.pixel_size_um,
     )
 
 
@@ -320,6 +322,10 @@ def _surface(
             height_sigma_um=sigma_f,
         )
         return h, lambda: _unit_normals(meas.normals, h, mask, s), "paper", {}
+    # The normals' bias by steepness, which their residual does not show, measured against
+    # the fringe heights and added to their σ (`quality.tilt_bias_rad`).
+    tilt_bias = tilt_bias_rad(meas.normals, meas.fringe_height_um, mask, pixel_size_um=s)
+    sig_n = np.sqrt(np.square(sig_n) + np.square(tilt_bias)).astype(np.float32)
     # The normals' low-frequency bias is taken out by the fringe heights first.
     normals = correct_normal_bias(
         meas.normals,
@@ -340,6 +346,10 @@ def _surface(
     )
     refinements = {
         "fringe_blur": {"sigma_px": fringe_blur},
+        "tilt_bias": {
+            "pixels": int(np.count_nonzero(mask & (tilt_bias > 0))),
+            "max_mrad": float(1000 * tilt_bias[mask].max()) if mask.any() else 0.0,
+        },
         "normal_bias": _normal_bias_entry(meas.normals, normals, mask),
     }
     sharp = h

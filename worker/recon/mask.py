@@ -15,6 +15,11 @@ Behind the tablet lies a dark, low-albedo support (black velvet, a V-block); cla
    have no normal;
 3. height (optional): the support lies below the tablet; pixels much lower than the
    tablet's low percentile are dropped (a V-block or a table seen around the tablet);
+   and, with the pixel size, a support whose faces rise toward the image border (a
+   V-block's) is found by its geometry: the heights split into smooth regions along
+   cliffs no clay side or support face makes continuously (`_support_below_cliff`), and
+   a region that reaches the image border and lies below the ground across its cliff is
+   the support;
 4. morphology: opening (removes specks and thin bridges to the support), the largest
    connected component plus any component at least `min_part_fraction` of it, holes
    filled (wedge floors in cast shadow are tablet too), and one pixel eroded off the rim
@@ -57,12 +62,14 @@ def tablet_mask(
     min_albedo: float = 0.06,
     min_part_fraction: float = 0.2,
     opening_px: int = 2,
+    pixel_size_um: float | None = None,
 ) -> np.ndarray:
     """Boolean (H, W) mask of the tablet.
 
     brightness: (H, W) albedo relative to white (or any brightness proportional to it), NaN
     where unknown. has_normal, has_height: (H, W) bool, where a normal / fringe height exists.
     modulation: (H, W) fringe modulation B/A (NaN allowed). height_um: (H, W) µm (NaN allowed).
+    pixel_size_um: with height_um, enables the support's cliff test (`_support_below_cliff`).
     """
     b = np.asarray(brightness, np.float32)
     if b.ndim != 2:
@@ -105,6 +112,16 @@ def tablet_mask(
             # stands above it. Where the two agree (IoU ≥ ½) brightness keeps its finer
             # rim (the tablet's sloping sides fall below the heights' threshold).
             fg = raised & finite & (b > 0.5 * min_albedo)
+        if pixel_size_um is not None:
+            support = _support_below_cliff(
+                height_um, finite & measured, pixel_size_um=pixel_size_um
+            )
+            if support is not None:
+                if (fg & ~support).sum() < 0.5 * fg.sum():
+                    # Brightness picked mostly the support (brighter than the clay, as a
+                    # light V-block is): the tablet is what the geometry leaves.
+                    fg = finite & measured & (b > 0.5 * min_albedo)
+                fg &= ~support
     if modulation is not None and fg.any():
         m = np.asarray(modulation, np.float32)
         tablet_m = m[fg & ~np.isnan(m)]  # np.nanmedian's values, without a whole-frame copy
@@ -174,6 +191,89 @@ def _raised_above_support(height_um, where, *, border_share: float = 0.5):
     if low_share < border_share:
         return None
     return ok & (h > t)
+
+
+def _support_below_cliff(
+    height_um,
+    where,
+    *,
+    pixel_size_um: float,
+    step_um: float = 150.0,
+    border_share: float = 0.25,
+    lower_share: float = 0.75,
+):
+    """The pixels of a support seen around the tablet, told by its geometry, or None.
+
+    A tablet rests on its support, so along its silhouette the heights climb from the
+    support up the tablet's side more steeply than any support face does. Edges between
+    4-neighbours whose height step exceeds max(`step_um`, 2·s) (steeper than 63°) are cut,
+    the pixels at a cut set aside, and the rest split into connected regions; each set-aside
+    pixel then joins the region nearest to it. A region is support when it reaches the
+    image border (a 4 px band) with at least `border_share` of the measured border pixels,
+    and it is the lower side of at least `lower_share` of the edges it shares with other
+    regions, by more than half the step in the median (the set-aside pixels nearest to it
+    count only within a step of its edge's level). A tablet filling the frame has no
+    ground above its border regions; a chip inside it does not reach the border. None when
+    no region passes or nothing would be left.
+    """
+    h = np.asarray(height_um, np.float32)
+    ok = np.asarray(where, bool) & np.isfinite(h)
+    if ok.sum() < 64 or min(h.shape) < 16:
+        return None
+    step = max(float(step_um), 2.0 * float(pixel_size_um))
+    with np.errstate(invalid="ignore"):
+        cut_x = ok[:, 1:] & ok[:, :-1] & (np.abs(h[:, 1:] - h[:, :-1]) > step)
+        cut_y = ok[1:, :] & ok[:-1, :] & (np.abs(h[1:, :] - h[:-1, :]) > step)
+    cliff = np.zeros(h.shape, bool)
+    cliff[:, 1:] |= cut_x
+    cliff[:, :-1] |= cut_x
+    cliff[1:, :] |= cut_y
+    cliff[:-1, :] |= cut_y
+    if not cliff.any():
+        return None
+    labels, count = ndimage.label(ok & ~cliff)
+    if count < 2:
+        return None
+    border = np.ones(h.shape, bool)
+    border[4:-4, 4:-4] = False
+    measured_border = int(np.count_nonzero(border & ok))
+    on_border = np.bincount(labels[border].ravel(), minlength=count + 1)
+    candidates = np.nonzero(on_border[1:] >= border_share * max(measured_border, 1))[0] + 1
+    if measured_border < 16 or candidates.size == 0:
+        return None
+    # Every set-aside pixel joins its nearest region.
+    idx = ndimage.distance_transform_edt(labels == 0, return_distances=False, return_indices=True)
+    lab = np.where(ok, labels[idx[0], idx[1]], 0)
+    below = np.zeros(count + 1)
+    shared = np.zeros(count + 1)
+    rise: dict[int, list] = {int(c): [] for c in candidates}
+    for a, b, ha, hb in (
+        (lab[:, :-1], lab[:, 1:], h[:, :-1], h[:, 1:]),
+        (lab[:-1, :], lab[1:, :], h[:-1, :], h[1:, :]),
+    ):
+        e = (a > 0) & (b > 0) & (a != b)
+        la, lb, d = a[e], b[e], (hb - ha)[e]  # d: how far b's side stands above a's
+        for side, other_rise in ((la, d), (lb, -d)):
+            shared += np.bincount(side, minlength=count + 1)
+            below += np.bincount(side, weights=other_rise > 0, minlength=count + 1)
+            for c in rise:
+                rise[c].append(other_rise[side == c])
+    support = np.zeros(h.shape, bool)
+    for c, parts in rise.items():
+        r = np.concatenate(parts)
+        if r.size and below[c] >= lower_share * shared[c] and np.median(r) > 0.5 * step:
+            # A set-aside pixel nearest to the support is support only within a step of
+            # the support's own edge (the tablet's steep side is tablet, however near).
+            core = labels == c
+            edge = core & cv2.dilate(cliff.astype(np.uint8), _SQUARE).astype(bool)
+            top = float(np.median(h[edge] if edge.any() else h[core])) + step
+            with np.errstate(invalid="ignore"):
+                support |= core | ((lab == c) & cliff & (h <= top))
+    if not support.any():
+        return None
+    if (ok & ~support).sum() < 0.05 * ok.sum():
+        return None
+    return support
 
 
 # Binary morphology with a 3×3 square as scipy.ndimage's (outside the image counts as

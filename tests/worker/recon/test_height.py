@@ -326,4 +326,27 @@ def test_valid_fringe_excludes_rim_single_azimuth_and_lone_outliers():
     v = valid_fringe(f, mask, azimuths_used=used, pixel_size_um=50.0)
     assert not v[10, 10] and not v[5, 5]
     assert not v[:2].any() and not v[:, -2:].any()  # the rim
-    assert v[2:-2, 2:-2].sum() == 16 * 16 - 2
+    # The lone wrong order's 8 neighbours too: their 3×3 spans it (as at a cliff).
+    assert v[2:-2, 2:-2].sum() == 16 * 16 - 2 - 8
+    assert not v[9:12, 9:12].any()
+
+
+def test_valid_fringe_leaves_out_a_cliff_side_reported_by_the_other_side():
+    # A 1 mm cliff whose lower side's first two pixels report the upper side's height (a
+    # mixed phase every azimuth agrees on, hard noise 512×384): they pass the 5×5 median
+    # test, but near the cliff no fringe height is held to (hard-512 lost RMS 10.8 → 13.9).
+    from worker.recon.height import guard_heights, valid_fringe
+
+    rows, cols = 30, 40
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float32)
+    truth = np.where(x < 20, 1000.0, 0.0).astype(np.float32) + 2 * y
+    fringe = truth.copy()
+    fringe[:, 20] += 1000.0  # the lower side's wall pixels report the upper side ...
+    fringe[::2, 21] = np.nan  # ... next to pixels no azimuth measured
+    mask = np.ones(truth.shape, bool)
+    used = np.full(truth.shape, 2, np.int16)
+    v = valid_fringe(fringe, mask, azimuths_used=used, pixel_size_um=26.8)
+    assert not v[:, 20].any()
+    assert v[2:-2, 3:18].all() and v[2:-2, 23:-2].all()
+    g = guard_heights(truth, fringe, None, mask, valid=v, pixel_size_um=26.8)
+    np.testing.assert_array_equal(g.height_um, truth)  # the right fused side is kept

@@ -127,3 +127,55 @@ def test_the_height_split_leaves_a_brightness_mask_that_agrees():
         albedo.astype(np.float32), has_normal=ones, has_height=np.isfinite(height)
     )
     np.testing.assert_array_equal(with_h, without)
+
+
+def _vblock_scene(rng, rows=96, cols=128, pixel_um=143.0):
+    """Clay (ρ 0.27) resting in a light V-block (ρ 0.49, brighter than the clay) whose two
+    faces rise toward the top and bottom image borders (native random physics seed 1): the
+    support's heights overlap the tablet's lower sides, and brightness picks the support."""
+    y, x = np.mgrid[0:rows, 0:cols]
+    tablet = (np.abs(x - cols / 2) < 44) & (np.abs(y - rows / 2) < 32)
+    # Rounded sides: 2 mm on top, falling to −1.7 mm at the silhouette (the side curving
+    # under toward the contact).
+    d = np.minimum(44 - np.abs(x - cols / 2), 32 - np.abs(y - rows / 2))
+    top = 2000.0 - 3700.0 * np.exp(-np.clip(d, 0, None) / 2.0)
+    support = -4000.0 + 0.45 * pixel_um * np.abs(y - rows / 2)  # faces at ~24°
+    height = np.where(tablet, top, support) + rng.normal(0, 5, (rows, cols))
+    albedo = np.where(tablet, 0.27, 0.49) * rng.uniform(0.9, 1.1, (rows, cols))
+    return tablet, albedo.astype(np.float32), height.astype(np.float32)
+
+
+def test_a_v_block_brighter_than_the_clay_is_not_taken_for_tablet():
+    rng = np.random.default_rng(6)
+    tablet, albedo, height = _vblock_scene(rng)
+    ones = np.ones(tablet.shape, bool)
+    got = tablet_mask(
+        albedo, has_normal=ones, has_height=ones, height_um=height, pixel_size_um=143.0
+    )
+    assert not got[~tablet].any()  # none of the V-block
+    inner = np.zeros_like(tablet)
+    inner[20:76, 24:104] = True
+    assert got[inner].mean() > 0.99  # the tablet's top and upper sides
+
+
+def test_a_frame_filling_tablet_with_a_chip_at_the_border_has_no_support():
+    # No support in view: a chip's floor lies below its surroundings and reaches the
+    # border, but it is a small share of the border; the tablet's border region has no
+    # ground above it.
+    from worker.recon.mask import _support_below_cliff
+
+    rng = np.random.default_rng(7)
+    rows, cols = 96, 128
+    y, x = np.mgrid[0:rows, 0:cols]
+    height = 500.0 + 2.0 * x + rng.normal(0, 5, (rows, cols))
+    height[(x < 20) & (np.abs(y - 48) < 15)] -= 900.0
+    ones = np.ones((rows, cols), bool)
+    assert _support_below_cliff(height, ones, pixel_size_um=53.6) is None
+    # The same tablet in a V-block: found.
+    tablet, _, vb = _vblock_scene(rng)
+    support = _support_below_cliff(vb, ones, pixel_size_um=143.0)
+    assert support is not None and support[~tablet].mean() > 0.97
+    # Of the tablet, at most its outermost ring (a rim pixel mixes both, and is eroded).
+    from scipy import ndimage
+
+    assert not support[ndimage.binary_erosion(tablet, iterations=1)].any()
