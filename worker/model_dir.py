@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -21,7 +22,7 @@ from worker.durable import npy_bytes, replace_dir_atomic, write_new_file
 from worker.recon.glb import glb_bytes
 from worker.recon.mesh import grid_mesh, ply_bytes
 
-__all__ = ["ModelArrays", "albedo_png_bytes", "write_model_dir"]
+__all__ = ["ModelArrays", "albedo_png_bytes", "write_model_dir", "write_model_dir_timed"]
 
 
 class ModelArrays:
@@ -61,6 +62,31 @@ def _png_bytes(name: str, image: np.ndarray) -> bytes:
 def albedo_png_bytes(albedo_srgb8: np.ndarray) -> bytes:
     """albedo.png's bytes for the (H, W, 3) sRGB albedo (`ModelArrays.albedo_png`)."""
     return _png_bytes("albedo.png", np.asarray(albedo_srgb8, np.uint8))
+
+
+def write_model_dir_timed(
+    out_dir: str | os.PathLike,
+    model: ModelArrays,
+    report: dict,
+    *,
+    timings: dict[str, float],
+    started_s: float,
+    progress: Callable[[str, float], None],
+) -> dict:
+    """`write_model_dir` with the time spent writing and the whole run's (from
+    `started_s`, a `time.perf_counter()` value) added to `timings` and to report.json's
+    `timings_s`; progress reports "write" then "done"."""
+    t0 = time.perf_counter()
+    progress("write", 0.90)
+
+    def finish(rep: dict) -> dict:
+        timings["write"] = time.perf_counter() - t0
+        timings["total"] = time.perf_counter() - started_s
+        return {**rep, "timings_s": dict(timings)}
+
+    report = write_model_dir(out_dir, model, report, finish_report=finish)
+    progress("done", 1.0)
+    return report
 
 
 def write_model_dir(

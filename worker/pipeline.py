@@ -19,10 +19,11 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from worker.bundle import BundleError, open_bundle
+from worker.bundle import open_bundle
 from worker.measure import Measurements, ReconstructionError, measure_bundle
 from worker.measure.checks import check_lights, check_saturation, check_surface_request
-from worker.model_dir import ModelArrays, albedo_png_bytes, write_model_dir
+from worker.measure.result import bundle_errors_as_reconstruction_errors
+from worker.model_dir import ModelArrays, albedo_png_bytes, write_model_dir_timed
 from worker.recon.color import linear_to_srgb8
 from worker.recon.fusion import fuse_default, sharpen_heights
 from worker.recon.fusion_paper import fuse_paper
@@ -93,39 +94,26 @@ def reconstruct_bundle(
         return reconstruct_plain(bundle_path, out_dir, surface=surface, progress=progress)
     report_progress = progress or _noop
     t_start = time.perf_counter()
-    try:
-        with open_bundle(bundle_path) as bundle:
-            check_surface_request(bundle.frames, surface=surface)
-            check_lights(bundle.frames)
-            check_saturation(bundle, bundle.frames)
-            meas = measure_bundle(bundle, progress=report_progress, color_in_background=True)
-            try:
-                model, report, timings = _model(
-                    meas,
-                    camera_psf(bundle.manifest),
-                    fusion=fusion,
-                    surface=surface,
-                    progress=report_progress,
-                )
-            finally:
-                # The colour stage decodes its frames in the background (`_model` waits for
-                # it, unless it failed first): the bundle is closed after it.
-                futures_wait(meas.pending)
-    except BundleError as exc:
-        raise ReconstructionError(str(exc)) from None
-    except FileNotFoundError as exc:
-        raise ReconstructionError(f"bundle: {exc}") from None
-
-    t0 = time.perf_counter()
-    report_progress("write", 0.90)
-
-    def finish(rep: dict) -> dict:
-        timings["write"] = time.perf_counter() - t0
-        timings["total"] = time.perf_counter() - t_start
-        return {**rep, "timings_s": dict(timings)}
-
-    report = write_model_dir(out_dir, model, report, finish_report=finish)
-    report_progress("done", 1.0)
+    with bundle_errors_as_reconstruction_errors(), open_bundle(bundle_path) as bundle:
+        check_surface_request(bundle.frames, surface=surface)
+        check_lights(bundle.frames)
+        check_saturation(bundle, bundle.frames)
+        meas = measure_bundle(bundle, progress=report_progress, color_in_background=True)
+        try:
+            model, report, timings = _model(
+                meas,
+                camera_psf(bundle.manifest),
+                fusion=fusion,
+                surface=surface,
+                progress=report_progress,
+            )
+        finally:
+            # The colour stage decodes its frames in the background (`_model` waits for
+            # it, unless it failed first): the bundle is closed after it.
+            futures_wait(meas.pending)
+    report = write_model_dir_timed(
+        out_dir, model, report, timings=timings, started_s=t_start, progress=report_progress
+    )
     return report
 
 

@@ -21,11 +21,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from worker.bundle import BundleError, open_bundle
+from worker.bundle import open_bundle
 from worker.measure.frames import angle_key
 from worker.measure.photometric import decode_with_references
-from worker.measure.result import ReconstructionError
-from worker.model_dir import ModelArrays, write_model_dir
+from worker.measure.result import ReconstructionError, bundle_errors_as_reconstruction_errors
+from worker.model_dir import ModelArrays, write_model_dir_timed
 from worker.recon.color import grey_reflectance, linear_to_srgb8, rgb_reflectance
 from worker.recon.fringe import four_step_phase
 from worker.recon.height import height_from_phase
@@ -81,24 +81,11 @@ def reconstruct_plain(
     report_progress = progress or _noop
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
-    try:
-        with open_bundle(bundle_path) as bundle:
-            model, report = _reconstruct(bundle, surface, timings, report_progress)
-    except BundleError as exc:
-        raise ReconstructionError(str(exc)) from None
-    except FileNotFoundError as exc:
-        raise ReconstructionError(f"bundle: {exc}") from None
-    t0 = time.perf_counter()
-    report_progress("write", 0.90)
-
-    def finish(rep: dict) -> dict:
-        timings["write"] = time.perf_counter() - t0
-        timings["total"] = time.perf_counter() - t_start
-        return {**rep, "timings_s": dict(timings)}
-
-    report = write_model_dir(out_dir, model, report, finish_report=finish)
-    report_progress("done", 1.0)
-    return report
+    with bundle_errors_as_reconstruction_errors(), open_bundle(bundle_path) as bundle:
+        model, report = _reconstruct(bundle, surface, timings, report_progress)
+    return write_model_dir_timed(
+        out_dir, model, report, timings=timings, started_s=t_start, progress=report_progress
+    )
 
 
 def _reconstruct(bundle, surface, timings: dict, progress: Progress) -> tuple[ModelArrays, dict]:

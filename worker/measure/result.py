@@ -2,15 +2,31 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Measurements", "ReconstructionError"]
+from worker.bundle import BundleError
+
+__all__ = ["Measurements", "ReconstructionError", "bundle_errors_as_reconstruction_errors"]
 
 
 class ReconstructionError(Exception):
     """The bundle cannot be reconstructed; the message names the culprit."""
+
+
+@contextmanager
+def bundle_errors_as_reconstruction_errors() -> Iterator[None]:
+    """Inside: a bundle that cannot be read (BundleError, a missing path) raises
+    ReconstructionError with the same message, so the CLI exits 2 naming it."""
+    try:
+        yield
+    except BundleError as exc:
+        raise ReconstructionError(str(exc)) from None
+    except FileNotFoundError as exc:
+        raise ReconstructionError(f"bundle: {exc}") from None
 
 
 @dataclass
