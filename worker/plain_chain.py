@@ -23,6 +23,7 @@ import numpy as np
 
 from worker.bundle import open_bundle
 from worker.measure.frames import angle_key
+from worker.measure.fringe import fringe_sets
 from worker.measure.photometric import decode_with_references
 from worker.measure.result import ReconstructionError, bundle_errors_as_reconstruction_errors
 from worker.model_dir import ModelArrays, write_model_dir_timed
@@ -278,39 +279,11 @@ def _saturated(bundle, frames, radiance: np.ndarray) -> np.ndarray:
     return out
 
 
-def _fringe_sets(bundle, fringe, warnings: list) -> dict:
-    """{(azimuth°, polar°): [(period µm, 4 object frames, 4 reference frames)] coarse → fine}."""
-    sets: dict = defaultdict(lambda: defaultdict(list))
-    for f in fringe:
-        sets[(angle_key(f.azimuth_deg), round(f.polar_deg, 6))][round(f.period_um, 6)].append(f)
-    out = {}
-    for key, by_period in sorted(sets.items()):
-        levels = []
-        for period, frames in sorted(by_period.items(), reverse=True):
-            frames = sorted(frames, key=lambda f: angle_key(f.phase_deg))
-            refs = [bundle.reference_of(f) for f in frames]
-            if [angle_key(f.phase_deg) for f in frames] != [0.0, 90.0, 180.0, 270.0]:
-                warnings.append(
-                    f"fringe: azimuth {key[0]:g}°, period {period:g} µm: phases are not "
-                    "0/90/180/270; set ignored"
-                )
-            elif any(r is None for r in refs):
-                warnings.append(
-                    f"fringe: azimuth {key[0]:g}°, period {period:g} µm has no reference "
-                    "frames; set ignored"
-                )
-            else:
-                levels.append((period, frames, refs))
-        if levels:
-            out[key] = levels
-    return out
-
-
 def _fringe_heights(bundle, fringe, rho_ref: float, warnings: list):
     """(heights averaged over azimuths (H, W) µm, brightness (H, W), report entry) or None."""
     if not fringe:
         return None
-    sets = _fringe_sets(bundle, fringe, warnings)
+    sets = fringe_sets(bundle, fringe, warnings)
     if not sets:
         warnings.append("fringe: no usable fringe set; no heights")
         return None

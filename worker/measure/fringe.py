@@ -19,13 +19,16 @@ from worker.recon.height import consensus_azimuths, height_from_phase
 from worker.recon.unwrap import noise_aware_unwrap
 from worker.recon.walls import cliff_samples
 
-__all__ = ["measure_fringes"]
+__all__ = ["fringe_sets", "measure_fringes"]
 
 _Z = float(np.sqrt(2.0 * np.log(1e3)))  # noise_aware_unwrap's default max_ambiguity 1e-3
 
 
-def _fringe_sets(bundle, fringe, meas):
-    """{(azimuth, polar): [(period, [4 object frames], [4 reference frames]), coarse → fine]}."""
+def fringe_sets(bundle, fringe, warnings: list[str]) -> dict:
+    """{(azimuth, polar): [(period, [4 object frames], [4 reference frames]), coarse → fine]}.
+
+    Sets whose phases are not the standard 0/90/180/270° or that lack reference frames are
+    left out, each with a line in `warnings`."""
     sets: dict = defaultdict(lambda: defaultdict(list))
     for f in fringe:
         sets[(angle_key(f.azimuth_deg), round(f.polar_deg, 6))][round(f.period_um, 6)].append(f)
@@ -37,13 +40,13 @@ def _fringe_sets(bundle, fringe, meas):
             phases = [angle_key(f.phase_deg) for f in frames]
             refs = [bundle.reference_of(f) for f in frames]
             if phases != [0.0, 90.0, 180.0, 270.0]:
-                meas.warnings.append(
+                warnings.append(
                     f"fringe: azimuth {key[0]}°, period {period} µm: phases {phases} "
                     "are not 0/90/180/270; set ignored"
                 )
                 continue
             if any(r is None for r in refs):
-                meas.warnings.append(
+                warnings.append(
                     f"fringe: azimuth {key[0]}°, period {period} µm has no reference frames; "
                     "set ignored (the reference phase is needed for heights)"
                 )
@@ -64,7 +67,7 @@ def measure_fringes(bundle, fringe, meas, rho_ref, progress, *, workers: int = 1
 
 
 def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_queued):
-    sets = _fringe_sets(bundle, fringe, meas)
+    sets = fringe_sets(bundle, fringe, meas.warnings)
     if not sets:
         meas.warnings.append("fringe: no usable fringe set; heights not computed")
         return
