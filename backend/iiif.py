@@ -296,14 +296,32 @@ def build_manifest(
     if not shown:
         raise ValueError("face_models must hold at least one face with an albedo image")
     base = manifest_id.rsplit("/", 1)[0]
+    return _manifest_of(
+        CONTEXT,
+        manifest_id,
+        fields,
+        summary=summary_text(fields, [f.face for f in shown]),
+        items=[_canvas(base, f) for f in shown],
+        shown=shown,
+        provenance=provenance,
+        record_url=record_url,
+        homepage=homepage,
+    )
+
+
+def _manifest_of(
+    context, manifest_id, fields, *, summary, items, shown, provenance, record_url, homepage
+) -> dict[str, Any]:
+    """What both manifests share around their items: label, summary, metadata, thumbnail
+    (the obverse) and the descriptive properties (rights, attribution, links)."""
     manifest: dict[str, Any] = {
-        "@context": CONTEXT,
+        "@context": context,
         "id": manifest_id,
         "type": "Manifest",
         "label": lang(str(fields.get("designation") or "tablet")),
-        "summary": lang(summary_text(fields, [f.face for f in shown]), "en"),
+        "summary": lang(summary, "en"),
         "metadata": metadata_entries(fields),
-        "items": [_canvas(base, f) for f in shown],
+        "items": items,
     }
     thumbnail = _thumbnail(shown)
     if thumbnail:
@@ -362,22 +380,17 @@ def build_3d_manifest(
         raise ValueError("face_models must hold at least one model with a model.glb")
     ordered = sorted(shown, key=lambda f: (f.face != WHOLE, _face_key(f.face)))
     base = manifest_id.rsplit("/", 1)[0]
-    manifest: dict[str, Any] = {
-        "@context": CONTEXT_3D,
-        "id": manifest_id,
-        "type": "Manifest",
-        "label": lang(str(fields.get("designation") or "tablet")),
-        "summary": lang(summary_text(fields, []).rstrip(".") + ": 3-D models.", "en"),
-        "metadata": metadata_entries(fields),
-        "items": [_scene(base, f) for f in ordered],
-    }
-    thumbnail = _thumbnail(shown)
-    if thumbnail:
-        manifest["thumbnail"] = [thumbnail]
-    _descriptive(
-        manifest, fields=fields, provenance=provenance, record_url=record_url, homepage=homepage
+    return _manifest_of(
+        CONTEXT_3D,
+        manifest_id,
+        fields,
+        summary=summary_text(fields, []).rstrip(".") + ": 3-D models.",
+        items=[_scene(base, f) for f in ordered],
+        shown=shown,
+        provenance=provenance,
+        record_url=record_url,
+        homepage=homepage,
     )
-    return manifest
 
 
 def find_by_id(document: Any, wanted: str) -> dict[str, Any] | None:
