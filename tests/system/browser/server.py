@@ -110,6 +110,30 @@ class Library:
         if self.log is not None:
             self.log.close()
 
+    def add_tablet_model(self, designation: str, model_dir: Path) -> int:
+        """A succeeded registration job of tablet ``designation`` storing ``model_dir`` (a
+        whole-tablet model), as the worker stores it; returns the model's id."""
+        from backend import jobs
+        from backend.db import make_engine, make_sessionmaker, session_scope
+        from backend.storage import LocalStorage
+        from backend.tables import JobKind
+
+        engine = make_engine(f"sqlite:///{self.data_dir / 'hammurabi.db'}")
+        try:
+            factory = make_sessionmaker(engine)
+            storage = LocalStorage(self.data_dir / "storage")
+            with session_scope(factory) as session:
+                tablet_id = self.tablets[designation]
+                job = jobs.create(session, tablet_id=tablet_id, kind=JobKind.register)
+                session.commit()
+                jobs.mark_running(session, job_id=job.id)
+                model = jobs.mark_succeeded(
+                    session, job_id=job.id, model_dir=model_dir, storage=storage
+                )
+                return model.id
+        finally:
+            engine.dispose()
+
 
 TABLETS = [
     dict(

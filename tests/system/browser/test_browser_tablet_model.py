@@ -45,25 +45,7 @@ def _two_node_model_dir(model_dir: Path) -> None:
 
 def _add_tablet_model(library, model_dir: Path) -> int:
     """A succeeded registration job of TABLET storing ``model_dir``, as the worker stores it."""
-    from backend import jobs
-    from backend.db import make_engine, make_sessionmaker, session_scope
-    from backend.storage import LocalStorage
-    from backend.tables import JobKind
-
-    engine = make_engine(f"sqlite:///{library.data_dir / 'hammurabi.db'}")
-    try:
-        factory = make_sessionmaker(engine)
-        storage = LocalStorage(library.data_dir / "storage")
-        with session_scope(factory) as session:
-            job = jobs.create(session, tablet_id=library.tablets[TABLET], kind=JobKind.register)
-            session.commit()
-            jobs.mark_running(session, job_id=job.id)
-            model = jobs.mark_succeeded(
-                session, job_id=job.id, model_dir=model_dir, storage=storage
-            )
-            return model.id
-    finally:
-        engine.dispose()
+    return library.add_tablet_model(TABLET, model_dir)
 
 
 @pytest.fixture(scope="module")

@@ -76,25 +76,7 @@ def _seam_model_dir(out: Path, *, winner: str) -> None:
 
 def _add_tablet_model(library, model_dir: Path, tablet: str = TABLET) -> int:
     """A succeeded registration job of ``tablet`` storing ``model_dir``, as the worker does."""
-    from backend import jobs
-    from backend.db import make_engine, make_sessionmaker, session_scope
-    from backend.storage import LocalStorage
-    from backend.tables import JobKind
-
-    engine = make_engine(f"sqlite:///{library.data_dir / 'hammurabi.db'}")
-    try:
-        factory = make_sessionmaker(engine)
-        storage = LocalStorage(library.data_dir / "storage")
-        with session_scope(factory) as session:
-            job = jobs.create(session, tablet_id=library.tablets[tablet], kind=JobKind.register)
-            session.commit()
-            jobs.mark_running(session, job_id=job.id)
-            model = jobs.mark_succeeded(
-                session, job_id=job.id, model_dir=model_dir, storage=storage
-            )
-            return model.id
-    finally:
-        engine.dispose()
+    return library.add_tablet_model(tablet, model_dir)
 
 
 @pytest.fixture(scope="module")
