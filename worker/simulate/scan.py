@@ -144,26 +144,34 @@ def point_truth(
     return out
 
 
-def _write_gt(
-    gt_dir: Path, view: View, tablet: Tablet | MeshTablet, physics: Physics, physics_seed
+def write_gt_dir(
+    gt_dir: Path, gt: dict, view: View, tablet: Tablet | MeshTablet, physics_doc: dict
 ) -> None:
-    gt = point_truth(tablet, view, albedo_scale=physics.albedo_scale)
-    area = view.ground_truth()["height"]
+    """The ground-truth folder, atomically, the same for every renderer: `gt`'s point-sampled
+    height, normals, albedo and mask, the pixel-mean height (height_area.npy: the box mean of
+    each pixel's samples), the wedges and `physics_doc` as physics.json."""
 
     def fill(tmp: Path) -> None:
         for name in ("height", "normals", "albedo", "mask"):
             write_new_file(tmp / f"{name}.npy", npy_bytes(gt[name]))
-        write_new_file(tmp / "height_area.npy", npy_bytes(area))
+        write_new_file(tmp / "height_area.npy", npy_bytes(view.ground_truth()["height"]))
         text = json.dumps({"wedges": wedge_records(tablet, view)}, indent=1)
         write_new_file(tmp / "wedges.json", text.encode())
-        doc = {
-            "simulator": SIMULATOR,
-            "physics_seed": physics_seed,
-            "physics": physics_to_dict(physics),
-        }
-        write_new_file(tmp / "physics.json", json.dumps(doc, indent=1).encode())
+        write_new_file(tmp / "physics.json", json.dumps(physics_doc, indent=1).encode())
 
     replace_dir_atomic(gt_dir, fill)
+
+
+def _write_gt(
+    gt_dir: Path, view: View, tablet: Tablet | MeshTablet, physics: Physics, physics_seed
+) -> None:
+    gt = point_truth(tablet, view, albedo_scale=physics.albedo_scale)
+    doc = {
+        "simulator": SIMULATOR,
+        "physics_seed": physics_seed,
+        "physics": physics_to_dict(physics),
+    }
+    write_gt_dir(gt_dir, gt, view, tablet, doc)
 
 
 def _check_fringe_range(view: View, preset_polar_deg: float, coarsest_um: float) -> None:

@@ -18,7 +18,6 @@ error is one realisation per direction and the four phases stay consistent.
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import sys
 import tempfile
@@ -29,7 +28,6 @@ from pathlib import Path
 import numpy as np
 
 from worker.bundle import write_bundle
-from worker.durable import npy_bytes, replace_dir_atomic, write_new_file
 from worker.simulate.acquisition import (
     PHASES_DEG,
     PRESETS,
@@ -54,7 +52,7 @@ from worker.simulate.noise import NoiseModel, encode_frame, noise_model
 from worker.simulate.physics import Physics, physics_to_dict, resolve_physics
 from worker.simulate.projector import defocus_mtf, fringe_profile
 from worker.simulate.rig import CHANNELS, FrameSpec, Rig
-from worker.simulate.scan import SimulationResult, scan_rig, wedge_records
+from worker.simulate.scan import SimulationResult, scan_rig, write_gt_dir
 from worker.simulate.support import scale_albedo, with_support
 from worker.simulate.tablet import FACE_POSES, FACES, Tablet, make_tablet
 from worker.simulate.view import View, render_view
@@ -649,15 +647,6 @@ def render_scan_mitsuba(
         "phases_deg": list(PHASES_DEG),
     }
 
-    def fill(tmp_dir: Path) -> None:
-        for name in ("height", "normals", "albedo", "mask"):
-            write_new_file(tmp_dir / f"{name}.npy", npy_bytes(gt[name]))
-        # The box mean over each pixel's 2×2 samples, as the native renderer writes it.
-        write_new_file(tmp_dir / "height_area.npy", npy_bytes(view.ground_truth()["height"]))
-        wedges = json.dumps({"wedges": wedge_records(tablet, view)}, indent=1)
-        write_new_file(tmp_dir / "wedges.json", wedges.encode())
-        write_new_file(tmp_dir / "physics.json", json.dumps(physics, indent=1).encode())
-
     gt_dir = out / "gt"
-    replace_dir_atomic(gt_dir, fill)
+    write_gt_dir(gt_dir, gt, view, tablet, physics)
     return SimulationResult(out, {face: bundle}, {face: gt_dir}, {face: view}, len(frames))
