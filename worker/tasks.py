@@ -52,6 +52,7 @@ from worker import celery_app as capp
 from worker.assets import AssetError
 from worker.assets import derive_assets as write_derived_assets
 from worker.celery_app import app
+from worker.photos import write_photo_assets
 
 log = logging.getLogger("worker.tasks")
 
@@ -234,6 +235,10 @@ def _reconstruct(beat: _Beat, job: Job) -> str:
         beat.progress("assets", 0.86, force=True)
         write_derived_assets(model_dir)
         timings["assets"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        beat.progress("photos", 0.89, force=True)
+        _photos(job.id, bundle, model_dir)
+        timings["photos"] = time.perf_counter() - t0
         beat.timings(timings, "store", 0.92)
 
         if beat.lost.is_set():
@@ -244,6 +249,18 @@ def _reconstruct(beat: _Beat, job: Job) -> str:
         return "succeeded"
     finally:
         shutil.rmtree(work, ignore_errors=True)
+
+
+def _photos(job_id: int, bundle: Path, model_dir: Path) -> None:
+    """The photo stack and gloss (worker.photos): an addition to the model, so a failure
+    there leaves the model without them (and says so in the log), never half of them."""
+    try:
+        write_photo_assets(bundle, model_dir)
+    except Exception:
+        log.exception("job %s: photo stack and gloss not written", job_id)
+        shutil.rmtree(model_dir / "photos", ignore_errors=True)
+        for name in ("gloss.png", "gloss.json"):
+            (model_dir / name).unlink(missing_ok=True)
 
 
 def _store(job_id: int, model_dir: Path, storage) -> int:
