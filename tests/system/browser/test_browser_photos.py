@@ -105,7 +105,6 @@ def test_the_photograph_follows_the_light_and_matches_the_render(page, photo_lib
     assert tablet.mean() > 0.1
     gx_r, gx_p = np.gradient(render, axis=1)[tablet], np.gradient(photo, axis=1)[tablet]
     corr = np.corrcoef(gx_r, gx_p)[0, 1]
-    print("corr", corr)
     assert corr > 0.5, corr
     # Misaligned by a few pixels, the same images correlate much less: the test can fail.
     shifted = np.roll(photo, 6, axis=1)
