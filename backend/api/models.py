@@ -21,7 +21,7 @@ from email.utils import format_datetime, parsedate_to_datetime
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Request, Response
-from fastapi.responses import JSONResponse, StreamingResponse
+from fastapi.responses import JSONResponse, RedirectResponse, StreamingResponse
 from fastapi.routing import APIRoute
 from pydantic import BaseModel
 from sqlalchemy.orm import Session
@@ -263,6 +263,7 @@ def asset_info(model: Model, name: str, storage: Storage) -> dict[str, Any] | No
     return entry
 
 
+_IIIF_LAYER = re.compile(r"^(?:.+/)?tiles/(?:.+/)?iiif/[^/]+$")
 _IIIF_INFO = re.compile(r"^(?:.+/)?tiles/(?:.+/)?iiif/[^/]+/info\.json$")
 
 
@@ -290,6 +291,12 @@ def _serve_asset(
 ) -> Response:
     info = asset_info(model, name, storage)
     if info is None:
+        if _IIIF_LAYER.match(name) and asset_info(model, f"{name}/info.json", storage):
+            # IIIF Image API 3.0 §2.2: the service's base URI redirects to its info.json.
+            base = f"{settings.resolved_public_url}{settings.api_prefix}"
+            return RedirectResponse(
+                f"{base}/models/{model.id}/assets/{name}/info.json", status_code=303
+            )
         raise not_found(f"asset {name!r} of model {model.id}", where="name")
     size = int(info["size_bytes"])
     etag = f'"{info["sha256"]}"'

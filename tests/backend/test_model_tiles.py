@@ -161,3 +161,42 @@ def test_private_model_tiles_are_not_readable_anonymously(
         owner = client.get(url, headers=world.headers("staff_own"))
         assert owner.status_code == 200
         assert owner.headers["cache-control"].startswith("private")
+
+
+def test_manifest_gives_each_layer_its_image_service(client, world, store, tmp_path, tiled_dir):
+    """Issue 18: albedo, normal map and height of a face carry a IIIF Image API 3 level-0
+    service on the tiles; the manifest still validates with iiif-prezi3."""
+    from urllib.parse import urlsplit
+
+    from iiif_prezi3 import Manifest as Prezi3Manifest
+
+    job_id = job_helpers.new_job(world, tablet_id=world.public_a, face="obverse")
+    directory = tmp_path / "model"
+    shutil.copytree(tiled_dir, directory)
+    with world.session() as session:
+        jobs.mark_running(session, job_id=job_id)
+        model_id = jobs.mark_succeeded(
+            session, job_id=job_id, model_dir=directory, storage=store
+        ).id
+    manifest = client.get(f"{API}/tablets/{world.public_a}/iiif/manifest.json").json()
+    Prezi3Manifest(**manifest)  # raises on any deviation from the Presentation 3 schema
+    (canvas,) = manifest["items"]
+    assert (canvas["width"], canvas["height"]) == (700, 560)
+    public = client.app.state.settings.resolved_public_url
+    base = f"{public}{API}/models/{model_id}/assets/tiles/iiif"
+    bodies = [a["body"] for a in canvas["items"][0]["items"]]
+    (height_annotation,) = canvas["annotations"][0]["items"]
+    assert height_annotation["motivation"] == "supplementing"
+    bodies.append(height_annotation["body"])
+    for body, layer in zip(bodies, ("albedo", "normals", "height"), strict=True):
+        (service,) = [s for s in body["service"] if s["type"] == "ImageService3"]
+        assert service == {"id": f"{base}/{layer}", "type": "ImageService3", "profile": "level0"}
+        # The service's base URI redirects (303) to its info.json, whose id is the service id.
+        redirect = client.get(urlsplit(service["id"]).path, follow_redirects=False)
+        assert redirect.status_code == 303
+        info = client.get(urlsplit(redirect.headers["location"]).path).json()
+        assert info["id"] == service["id"]
+    # The height image itself: the largest whole-image rendition of the pyramid.
+    height = client.get(urlsplit(bodies[2]["id"]).path)
+    assert height.status_code == 200 and height.headers["content-type"] == "image/png"
+    assert (bodies[2]["width"], bodies[2]["height"]) == (350, 280)

@@ -184,8 +184,7 @@ def write_large_face(out_dir: str | Path, *, width_px: int, height_px: int, seed
         "generator": "worker.simulate.large_face",
         "seed": seed,
         "pixel_size_um": PIXEL_SIZE_UM,
-        "width_px": width_px,
-        "height_px": height_px,
+        "image_size": {"width": width_px, "height": height_px},
         "note": "procedural surface written as a model directory; no frames were simulated",
     }
     albedo_png = _png(albedo, "albedo.png")
@@ -240,7 +239,8 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"large_face: {exc}", file=sys.stderr)
         return 2
-    print(f"{args.out}: {report['width_px']} × {report['height_px']} px at {PIXEL_SIZE_UM} µm")
+    size = report["image_size"]
+    print(f"{args.out}: {size['width']} × {size['height']} px at {PIXEL_SIZE_UM} µm")
     return 0
 
 

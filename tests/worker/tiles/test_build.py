@@ -249,3 +249,14 @@ def test_bad_model_directory_is_a_clear_error_and_writes_nothing(tmp_path, capsy
     assert "albedo.png is missing" in capsys.readouterr().err
     assert not (tmp_path / "tiles").exists()
     assert tiles_main([str(tmp_path / "nowhere")]) == 2
+
+
+def test_the_manifests_full_size_rule_matches_the_pyramid_on_disk(tiled_face):
+    from backend.iiif import IIIF_TILE_PX, level0_full_size
+    from worker.tiles.iiif import TILE_PX
+
+    model_dir, index, _ = tiled_face
+    assert IIIF_TILE_PX == TILE_PX
+    w, h = level0_full_size(index["width_px"], index["height_px"])
+    for layer in ("albedo", "normals", "height"):
+        assert (model_dir / "tiles" / "iiif" / layer / "full" / f"{w},{h}").is_dir()
