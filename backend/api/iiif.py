@@ -26,12 +26,13 @@ from backend.iiif import (
     WHOLE,
     FaceModel,
     Provenance,
+    SignAnnotation,
     build_3d_manifest,
     build_manifest,
     find_by_id,
     has_canvas,
 )
-from backend.tables import Model, Scan, Tablet
+from backend.tables import Annotation, Model, Scan, Tablet
 
 router = APIRouter(tags=["iiif"], route_class=StorageErrorRoute)
 
@@ -105,6 +106,7 @@ def _inputs(session: Session, settings, tablet: Tablet):
     urls = tablet_urls(settings, tablet)
     models = newest_models(session, tablet.id)
     face_models = []
+    signs = _sign_annotations(session, [m.id for f, m in models.items() if f != WHOLE])
     for face, model in models.items():
         width, height, pixel = _grid(model.report or {})
         face_models.append(
@@ -119,11 +121,35 @@ def _inputs(session: Session, settings, tablet: Tablet):
                 width_px=width,
                 height_px=height,
                 pixel_size_um=pixel,
+                rights=model.licence,
+                attribution=model.attribution,
+                annotations=tuple(signs.get((model.id, face), ())),
             )
         )
     licence = licences.effective(tablet)
     fields = {name: getattr(tablet, name) for name in FIELDS}
     return urls, face_models, fields, licence
+
+
+def _sign_annotations(
+    session: Session, model_ids: list[int]
+) -> dict[tuple[int, str], list[SignAnnotation]]:
+    """(model id, face) → the annotations on that face's image grid, oldest first."""
+    found: dict[tuple[int, str], list[SignAnnotation]] = {}
+    if not model_ids:
+        return found
+    rows = session.scalars(
+        select(Annotation)
+        .where(Annotation.model_id.in_(model_ids), Annotation.polygon_px.is_not(None))
+        .order_by(Annotation.id)
+    )
+    for a in rows:
+        if not a.image_face or not a.polygon_px:
+            continue
+        found.setdefault((a.model_id, a.image_face), []).append(
+            SignAnnotation(a.id, a.reference, a.reading, a.comment, a.polygon_px)
+        )
+    return found
 
 
 def _manifest(session: Session, settings, tablet: Tablet) -> dict:

@@ -1,0 +1,168 @@
+"""Annotations of signs as W3C Web Annotations (https://www.w3.org/TR/annotation-model/).
+
+Pure functions from plain values to JSON-LD (context http://www.w3.org/ns/anno.jsonld):
+
+- the *body* is up to three ``TextualBody`` s: the ATF-style reference (purpose
+  ``identifying``, e.g. ``o 2 3``), the reading (``describing``) and the comment
+  (``commenting``); the annotation's motivation is ``commenting`` when it has a comment, else
+  ``tagging`` (IIIF Presentation 3 takes both for non-painting annotations);
+- the *target* is the region twice: on the model version (its ``model.glb``, the scan frame
+  in mm) by a ``WktSelector`` holding a ``POLYGON Z`` (the selector of the IIIF 3D community
+  group's Presentation 4 draft), and, when known, on the face's image (``albedo.png``, the
+  image grid in pixels) by an ``SvgSelector`` (a ``<polygon>``) with its bounding box as a
+  Media Fragments ``FragmentSelector`` (``xywh=pixel:x,y,w,h``) for clients that read no SVG.
+
+Frame: a pixel (row r, column c) of a face's image grid is the point (c·s, r·s) µm of the
+scan frame (SCAN_BUNDLE.md), so a face model's polygon in pixels follows from the one in mm
+(:func:`polygon_px_from_mm`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from datetime import datetime
+from typing import Any
+
+ANNO_CONTEXT = "http://www.w3.org/ns/anno.jsonld"
+MEDIA_TYPE = f'application/ld+json; profile="{ANNO_CONTEXT}"'
+MEDIA_FRAGMENTS = "http://www.w3.org/TR/media-frags/"
+SVG_NS = "http://www.w3.org/2000/svg"
+
+
+def polygon_px_from_mm(
+    polygon_mm: Sequence[Sequence[float]], pixel_size_um: float
+) -> list[list[float]]:
+    """[[col, row], ...] of a face's image grid for points [[x, y, z], ...] in mm.
+
+    SCAN_BUNDLE.md: pixel (r, c) is the point (c·s, r·s) µm, so c = 1000·x/s, r = 1000·y/s.
+    """
+    if not pixel_size_um > 0:
+        raise ValueError(f"pixel_size_um must be > 0, got {pixel_size_um}")
+    scale = 1000.0 / pixel_size_um
+    return [[round(p[0] * scale, 2), round(p[1] * scale, 2)] for p in polygon_mm]
+
+
+def wkt_polygon_z(polygon_mm: Sequence[Sequence[float]]) -> str:
+    """``POLYGON Z ((x y z, ..., x y z))``, the ring closed (OGC Simple Features / WKT)."""
+    ring = [list(p) for p in polygon_mm]
+    if ring and ring[0] != ring[-1]:
+        ring.append(ring[0])
+    return "POLYGON Z ((" + ", ".join(" ".join(f"{v:.4f}" for v in p) for p in ring) + "))"
+
+
+def svg_polygon(polygon_px: Sequence[Sequence[float]]) -> str:
+    """An SVG document with one ``<polygon>`` (image-grid pixels), as SvgSelector wants."""
+    points = " ".join(f"{p[0]:g},{p[1]:g}" for p in polygon_px)
+    return f'<svg xmlns="{SVG_NS}"><polygon points="{points}"/></svg>'
+
+
+def xywh(polygon_px: Sequence[Sequence[float]]) -> str:
+    """``xywh=pixel:x,y,w,h``: the polygon's bounding box in whole pixels (Media Fragments)."""
+    cols = [p[0] for p in polygon_px]
+    rows = [p[1] for p in polygon_px]
+    x, y = int(min(cols)), int(min(rows))
+    w = max(1, int(-(-max(cols) // 1)) - x)
+    h = max(1, int(-(-max(rows) // 1)) - y)
+    return f"xywh=pixel:{x},{y},{w},{h}"
+
+
+def bodies(reference: str, reading: str | None, comment: str | None) -> list[dict[str, Any]]:
+    """The TextualBodies: reference (identifying), reading (describing), comment."""
+    out = [_text(reference, "identifying")]
+    if reading:
+        out.append(_text(reading, "describing"))
+    if comment:
+        out.append(_text(comment, "commenting"))
+    return out
+
+
+def _text(value: str, purpose: str) -> dict[str, Any]:
+    return {"type": "TextualBody", "purpose": purpose, "value": value, "format": "text/plain"}
+
+
+def motivation(comment: str | None) -> str:
+    return "commenting" if comment else "tagging"
+
+
+def image_selectors(polygon_px: Sequence[Sequence[float]]) -> list[dict[str, Any]]:
+    """The image-grid region: the exact polygon, then its bounding box (the fallback)."""
+    return [
+        {"type": "SvgSelector", "value": svg_polygon(polygon_px)},
+        {"type": "FragmentSelector", "conformsTo": MEDIA_FRAGMENTS, "value": xywh(polygon_px)},
+    ]
+
+
+def web_annotation(
+    *,
+    annotation_id: str,
+    reference: str,
+    reading: str | None,
+    comment: str | None,
+    polygon_mm: Sequence[Sequence[float]],
+    polygon_px: Sequence[Sequence[float]] | None,
+    model_source: dict[str, Any],
+    image_source: dict[str, Any] | None,
+    creator: dict[str, Any] | None,
+    created: datetime,
+    modified: datetime,
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """One annotation as W3C Web Annotation JSON-LD.
+
+    ``model_source`` / ``image_source``: ``{"id", "type", "format", "label"}`` of the model
+    file and of the face's image; no image target when ``polygon_px`` or the image is unknown.
+    ``extra``: plain-JSON facts for our own clients (model id and version, the parsed
+    reference); JSON-LD processors ignore terms the context does not define.
+    """
+    targets: list[dict[str, Any]] = [
+        {
+            "type": "SpecificResource",
+            "source": model_source,
+            "selector": [{"type": "WktSelector", "value": wkt_polygon_z(polygon_mm)}],
+        }
+    ]
+    if polygon_px and image_source is not None:
+        targets.append(
+            {
+                "type": "SpecificResource",
+                "source": image_source,
+                "selector": image_selectors(polygon_px),
+            }
+        )
+    document: dict[str, Any] = {
+        "@context": ANNO_CONTEXT,
+        "id": annotation_id,
+        "type": "Annotation",
+        "motivation": motivation(comment),
+        "created": created.isoformat(),
+        "modified": modified.isoformat(),
+        "body": bodies(reference, reading, comment),
+        "target": targets,
+    }
+    if creator is not None:
+        document["creator"] = creator
+    document.update(extra or {})
+    return document
+
+
+def iiif_annotation(
+    *,
+    annotation_id: str,
+    canvas_id: str,
+    reference: str,
+    reading: str | None,
+    comment: str | None,
+    polygon_px: Sequence[Sequence[float]],
+) -> dict[str, Any]:
+    """The annotation as IIIF Presentation 3 puts it on a canvas (region in canvas pixels)."""
+    return {
+        "id": annotation_id,
+        "type": "Annotation",
+        "motivation": motivation(comment),
+        "body": bodies(reference, reading, comment),
+        "target": {
+            "type": "SpecificResource",
+            "source": {"id": canvas_id, "type": "Canvas"},
+            "selector": image_selectors(polygon_px)[0],
+        },
+    }
