@@ -46,8 +46,10 @@ _ALIASES = {
     "top": "te",
     "bottom": "be",
 }
-_LINE_NUMBER = re.compile(r"^(\d+)('{0,2}|[a-z]?)$")
-_TEXT_LINE = re.compile(r"^(\d+'{0,2}[a-z]?)\.\s*(.*)$")
+# ASCII digits only (Python's \d also takes other scripts' digits): the documented pattern.
+_LINE_NUMBER = re.compile(r"^([1-9][0-9]{0,3})('{1,2}|[a-z])?$")
+_SIGN_NUMBER = re.compile(r"^[1-9][0-9]{0,3}$")
+_TEXT_LINE = re.compile(r"^([0-9]+'{0,2}[a-z]?)\.\s*(.*)$")
 _SIGN = re.compile(r"\{[^{}\s]*\}|[^\s{}.\-]+")
 _FLAGS = re.compile(r"[#?!*\[\]⸢⸣<>()]")
 MAX_ATF_CHARS = 200_000
@@ -183,7 +185,7 @@ def parse_reference(text: str) -> Reference:
         raise ReferenceError_(
             "line", f"line {line_text!r} is not a line number (1, 2, 3' or 4a; from 1)"
         )
-    if not sign_text.isdigit() or int(sign_text) == 0 or len(sign_text) > 4:
+    if not _SIGN_NUMBER.match(sign_text):
         raise ReferenceError_("sign", f"sign {sign_text!r} is not a sign number (1 to 9999)")
     return Reference(surface=surface, line=line_text, sign=int(sign_text))
 

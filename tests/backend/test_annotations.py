@@ -242,3 +242,15 @@ def test_staff_set_a_model_licence_seen_in_record_and_manifests(client, world, o
 
     cleared = client.patch(url, json={"licence": None}, headers=world.headers("admin")).json()
     assert cleared["licence"] is None and cleared["attribution"] is not None
+
+
+def test_a_word_that_is_also_a_surface_finds_readings_and_references(client, world, obverse):
+    post(client, world, obverse, reference="o 2 2", reading="be")
+    post(client, world, obverse, reference="o 1 1", reading="a")
+    url = f"{API}/models/{obverse}/annotations"
+    found = client.get(url, params={"q": "be"}).json()["items"]
+    assert [a["reading"] for a in found] == ["be"]  # no bottom edge sign, but the reading
+    assert client.get(url, params={"q": "o"}).json()["total"] == 2  # every obverse sign
+    assert client.get(url, params={"q": "o 1"}).json()["total"] == 1
+    long = client.get(url, params={"q": "x" * 201})
+    assert long.status_code == 422 and long.json()["where"] == "query.q"

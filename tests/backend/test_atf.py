@@ -103,3 +103,17 @@ def test_a_reference_must_name_a_sign_of_the_text():
         with pytest.raises(ReferenceError_) as caught:
             check_against(parse_reference(text), parsed)
         assert caught.value.part == part and words in str(caught.value), str(caught.value)
+
+
+@pytest.mark.parametrize("text", ["o ٣ 1", "o 1 ٣", "o 12345 1", "o 1 12345", "o 1 01"])
+def test_only_ascii_numbers_within_the_documented_pattern(text):
+    with pytest.raises(ReferenceError_):
+        parse_reference(text)
+
+
+def test_a_reference_prefix_is_recognised_for_search():
+    from backend.atf import reference_prefix
+
+    assert reference_prefix("R 1") == "r 1" and reference_prefix("o 2 3") == "o 2 3"
+    assert reference_prefix("be") == "be" and reference_prefix("obv") is None
+    assert reference_prefix("lugal") is None and reference_prefix("o 2 x") is None
