@@ -26,11 +26,6 @@ TRIANGLE_MM = [[1.0, 2.0, -0.1], [3.0, 2.0, -0.1], [2.0, 4.0, -0.2]]
 
 
 @pytest.fixture
-def db_url(sqlite_url) -> str:
-    return sqlite_url
-
-
-@pytest.fixture
 def store(app) -> LocalStorage:
     app.state.storage = LocalStorage(app.state.settings.resolved_storage_dir)
     return app.state.storage

@@ -177,3 +177,83 @@ def test_a_reader_not_signed_in_sees_annotations_but_no_form(browser, own_librar
     finally:
         context.close()
     assert not errors, errors
+
+
+def _two_face_model(out: Path) -> None:
+    """A whole-tablet model of two flat 12 × 10 mm faces side by side: "obverse" at the
+    origin, "reverse" 14 mm to the right; 250 µm pixels, so pixel (r, c) is at (c/4, r/4) mm
+    of its face."""
+    import io
+    import json
+
+    from PIL import Image
+
+    from worker.register.io import face_asset_dir, write_output_dir
+    from worker.register.merge import grid_mesh, scene_glb
+
+    rows, cols = 40, 48
+    flat = np.zeros((rows, cols))
+    mask = np.ones((rows, cols), bool)
+    meshes, moves, files = {}, {}, {}
+    for k, (name, colour) in enumerate((("obverse", (190, 150, 100)), ("reverse", (150, 120, 90)))):
+        meshes[name] = grid_mesh(
+            flat, mask, np.full((rows, cols, 3), colour, np.uint8), pixel_size_um=250.0
+        )
+        moves[name] = np.eye(4)
+        moves[name][0, 3] = 14.0 * k
+        rgba = np.zeros((rows, cols, 4), np.uint8)
+        rgba[...] = (128, 128, 0, 255)  # n = (0, 0, -1): toward the camera
+        buf = io.BytesIO()
+        Image.fromarray(rgba).save(buf, format="PNG")
+        files[f"{face_asset_dir(name)}/normals.png"] = buf.getvalue()
+    files["model.glb"] = scene_glb(meshes, moves)
+    files["report.json"] = json.dumps({"scans": list(meshes)}).encode()
+    write_output_dir(out, files)
+
+
+def _draw(page, tools, points_mm) -> None:
+    page.locator("#annotation-new").click()
+    for x, y in points_mm:
+        sx, sy = tools.screen_of(page, (x, y, 0.0))
+        page.mouse.click(sx, sy)
+
+
+def test_on_the_whole_tablet_the_region_is_also_on_its_face_image_grid(
+    page, own_library, server_module, tools, tmp_path
+):
+    _two_face_model(tmp_path / "two-faces")
+    model_id = own_library.add_tablet_model("P999003", tmp_path / "two-faces")
+    page.goto(f"{own_library.url}/staff.html")
+    page.locator("#email").fill(server_module.STAFF_EMAIL)
+    page.locator("#password").fill(server_module.STAFF_PASSWORD)
+    page.locator("#login-form button").click()
+    page.wait_for_selector("#work:not([hidden])")
+    page.goto(f"{own_library.url}/tablet.html?id=P999003")
+    page.wait_for_function(
+        f"() => document.getElementById('viewer').dataset.loaded === '{model_id}'",
+        timeout=30000,
+    )
+    tools.settle(page)
+    assert page.evaluate("() => window.hammurabi.viewer.partNames()") == ["obverse", "reverse"]
+
+    square = [(3.0, 3.0), (8.0, 3.0), (8.0, 7.0), (3.0, 7.0)]
+    _draw(page, tools, square)
+    page.locator("#annotation-reference").fill("o 1 1")
+    page.locator("#annotation-save").click()
+    page.wait_for_selector('#annotation-list li[data-ref="o 1 1"]')
+    (on_face,) = page.evaluate("() => window.hammurabi.annotations.state.items")
+    assert on_face["modelId"] == model_id and on_face["face"] == "tablet"
+    assert on_face["imageFace"] == "obverse"
+    expected_px = np.array(square) * 4.0  # 250 µm pixels
+    assert np.allclose(np.array(on_face["polygonPx"]), expected_px, atol=0.3), on_face
+    image = on_face["target"][1]["source"]["id"]
+    assert image.endswith(f"/models/{model_id}/assets/faces/obverse/normals.png")
+
+    # Over the gap onto the other face: no single image grid, the region in mm only.
+    _draw(page, tools, [(9.0, 3.0), (17.0, 3.0), (17.0, 7.0)])
+    page.locator("#annotation-reference").fill("o 1 2")
+    page.locator("#annotation-save").click()
+    page.wait_for_selector('#annotation-list li[data-ref="o 1 2"]')
+    across = page.evaluate("() => window.hammurabi.annotations.state.items[1]")
+    assert across["polygonPx"] is None and len(across["target"]) == 1
+    assert np.allclose(np.array(across["polygonMm"])[:, :2], [(9, 3), (17, 3), (17, 7)], atol=0.3)
