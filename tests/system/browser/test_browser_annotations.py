@@ -160,6 +160,7 @@ def test_a_reader_not_signed_in_sees_annotations_but_no_form(browser, own_librar
                 json={
                     "reference": "o 2 1",
                     "reading": "qi2",
+                    "comment": '<img src=x onerror="window.__xss = 1">',  # text, never HTML
                     "polygon_mm": [[5, 5, 0], [9, 5, 0], [9, 9, 0]],
                 },
             )
@@ -169,6 +170,10 @@ def test_a_reader_not_signed_in_sees_annotations_but_no_form(browser, own_librar
         assert page.locator("#annotation-login").is_visible()
         assert page.locator("#annotation-new").is_hidden()
         assert page.locator("#annotation-list button.delete").count() == 0
+        comment = page.locator('#annotation-list li[data-ref="o 2 1"] .comment')
+        assert comment.text_content() == '<img src=x onerror="window.__xss = 1">'
+        assert page.locator("#annotation-list img").count() == 0
+        assert page.evaluate("() => window.__xss === undefined")
         page.locator('#annotation-list li[data-ref="o 2 1"] button.ref').click()
         assert page.evaluate("() => window.hammurabi.annotations.state.highlighted") == "o 2 1"
         pressed = page.locator('#transliteration button.sign[aria-pressed="true"]')
