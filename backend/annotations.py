@@ -19,6 +19,8 @@ scan frame (SCAN_BUNDLE.md), so a face model's polygon in pixels follows from th
 
 from __future__ import annotations
 
+import json
+import struct
 from collections.abc import Sequence
 from datetime import datetime
 from typing import Any
@@ -27,6 +29,9 @@ ANNO_CONTEXT = "http://www.w3.org/ns/anno.jsonld"
 MEDIA_TYPE = f'application/ld+json; profile="{ANNO_CONTEXT}"'
 MEDIA_FRAGMENTS = "http://www.w3.org/TR/media-frags/"
 SVG_NS = "http://www.w3.org/2000/svg"
+GLB_HEADER_BYTES = 20  # glTF 2.0 §4.4: magic, version, length, then the JSON chunk's header
+MAX_GLB_JSON_BYTES = 16 * 1024 * 1024
+SCAN_FRAME_KEY = "scan_frame"  # the root node's extras (worker/recon/gltf_frame.py)
 
 
 def polygon_px_from_mm(
@@ -42,12 +47,59 @@ def polygon_px_from_mm(
     return [[round(p[0] * scale, 2), round(p[1] * scale, 2)] for p in polygon_mm]
 
 
-def wkt_polygon_z(polygon_mm: Sequence[Sequence[float]]) -> str:
+def wkt_polygon_z(polygon: Sequence[Sequence[float]], *, decimals: int = 4) -> str:
     """``POLYGON Z ((x y z, ..., x y z))``, the ring closed (OGC Simple Features / WKT)."""
-    ring = [list(p) for p in polygon_mm]
+    ring = [list(p) for p in polygon]
     if ring and ring[0] != ring[-1]:
         ring.append(ring[0])
-    return "POLYGON Z ((" + ", ".join(" ".join(f"{v:.4f}" for v in p) for p in ring) + "))"
+    return "POLYGON Z ((" + ", ".join(" ".join(f"{v:.{decimals}f}" for v in p) for p in ring) + "))"
+
+
+def glb_json_length(header: bytes) -> int | None:
+    """Length of a GLB's JSON chunk from its first 20 bytes (glTF 2.0 §4.4), else None."""
+    if len(header) < GLB_HEADER_BYTES or header[:4] != b"glTF":
+        return None
+    version, _total = struct.unpack_from("<II", header, 4)
+    length, kind = struct.unpack_from("<I4s", header, 12)
+    if version != 2 or kind != b"JSON" or not 0 < length <= MAX_GLB_JSON_BYTES:
+        return None
+    return length
+
+
+def scan_to_scene_matrix(gltf_json: bytes) -> list[list[float]] | None:
+    """The 4×4 matrix (row-major) of the root node that carries the scan frame → glTF scene
+    transform (SCAN_BUNDLE.md; its ``extras`` name ``scan_frame``), or None.
+
+    Our model.glb keeps the mesh in scan-frame (or tablet-frame) millimetres under that one
+    root node; its matrix takes those points to the scene's metres, +Y up."""
+    try:
+        document = json.loads(gltf_json)
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    nodes = document.get("nodes") if isinstance(document, dict) else None
+    for node in nodes if isinstance(nodes, list) else []:
+        extras = node.get("extras") if isinstance(node, dict) else None
+        matrix = node.get("matrix") if isinstance(node, dict) else None
+        if (
+            isinstance(extras, dict)
+            and SCAN_FRAME_KEY in extras
+            and isinstance(matrix, list)
+            and len(matrix) == 16
+            and all(isinstance(v, int | float) for v in matrix)
+        ):
+            # glTF matrices are column-major (glTF 2.0 §5.25).
+            return [[float(matrix[col * 4 + row]) for col in range(4)] for row in range(4)]
+    return None
+
+
+def transform_points(
+    matrix: Sequence[Sequence[float]], points: Sequence[Sequence[float]]
+) -> list[list[float]]:
+    """``matrix`` (4×4, row-major, affine) applied to 3-D ``points``."""
+    return [
+        [sum(matrix[r][c] * p[c] for c in range(3)) + matrix[r][3] for r in range(3)]
+        for p in points
+    ]
 
 
 def svg_polygon(polygon_px: Sequence[Sequence[float]]) -> str:
@@ -164,5 +216,31 @@ def iiif_annotation(
             "type": "SpecificResource",
             "source": {"id": canvas_id, "type": "Canvas"},
             "selector": image_selectors(polygon_px)[0],
+        },
+    }
+
+
+def scene_annotation(
+    *,
+    annotation_id: str,
+    scene_id: str,
+    reference: str,
+    reading: str | None,
+    comment: str | None,
+    polygon_scene_m: Sequence[Sequence[float]],
+) -> dict[str, Any]:
+    """The annotation on a Scene of the 3-D (Presentation 4 draft) manifest: the region as a
+    ``WktSelector`` in the scene's coordinates (metres, the model painted at the origin)."""
+    return {
+        "id": annotation_id,
+        "type": "Annotation",
+        "motivation": [motivation(comment)],
+        "body": bodies(reference, reading, comment),
+        "target": {
+            "type": "SpecificResource",
+            "source": {"id": scene_id, "type": "Scene"},
+            "selector": [
+                {"type": "WktSelector", "value": wkt_polygon_z(polygon_scene_m, decimals=6)}
+            ],
         },
     }

@@ -24,7 +24,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from backend.annotations import iiif_annotation
+from backend.annotations import iiif_annotation, scene_annotation
 
 CONTEXT = "http://iiif.io/api/presentation/3/context.json"
 CONTEXT_3D = "http://iiif.io/api/presentation/4/context.json"
@@ -90,6 +90,8 @@ class FaceModel:
     rights: str | None = None
     attribution: str | None = None
     annotations: Sequence[SignAnnotation] = ()
+    # The annotations of the model with their regions in its scene (metres), 3-D manifest.
+    scene_annotations: Sequence[SignAnnotation] = ()
 
 
 @dataclass(frozen=True)
@@ -100,7 +102,7 @@ class SignAnnotation:
     reference: str
     reading: str | None
     comment: str | None
-    polygon_px: Sequence[Sequence[float]]
+    polygon: Sequence[Sequence[float]]  # image-grid pixels (canvas) or scene metres (scene)
 
 
 @dataclass(frozen=True)
@@ -247,7 +249,7 @@ def _canvas(base: str, face_model: FaceModel) -> dict[str, Any]:
                         reference=a.reference,
                         reading=a.reading,
                         comment=a.comment,
-                        polygon_px=a.polygon_px,
+                        polygon_px=a.polygon,
                     )
                     for a in face_model.annotations
                 ],
@@ -411,6 +413,25 @@ def _scene(base: str, face_model: FaceModel) -> dict[str, Any]:
     if "thumbnail.png" in urls:
         scene["thumbnail"] = [_image(urls["thumbnail.png"])]
     _own_rights(scene, face_model)
+    if face_model.scene_annotations:
+        scene["annotations"] = [
+            {
+                "id": f"{scene_id}/annotations",
+                "type": "AnnotationPage",
+                "label": lang("Signs linked to the transliteration", "en"),
+                "items": [
+                    scene_annotation(
+                        annotation_id=f"{scene_id}/annotations/{a.number}",
+                        scene_id=scene_id,
+                        reference=a.reference,
+                        reading=a.reading,
+                        comment=a.comment,
+                        polygon_scene_m=a.polygon,
+                    )
+                    for a in face_model.scene_annotations
+                ],
+            }
+        ]
     return scene
 
 

@@ -7,6 +7,7 @@ import json
 from datetime import datetime
 from urllib.parse import urlsplit
 
+import numpy as np
 import pytest
 import test_jobs as job_helpers
 from iiif_prezi3 import Manifest as Prezi3Manifest
@@ -249,3 +250,51 @@ def test_a_word_that_is_also_a_surface_finds_readings_and_references(client, wor
     assert client.get(url, params={"q": "o 1"}).json()["total"] == 1
     long = client.get(url, params={"q": "x" * 201})
     assert long.status_code == 422 and long.json()["where"] == "query.q"
+
+
+def _model_with_glb(world, store, tmp_path, glb: bytes) -> int:
+    """An obverse model of public A whose model.glb is ``glb`` (the rest as ``finish``)."""
+    directory = job_helpers.model_dir(tmp_path, name="with-glb")
+    (directory / "model.glb").write_bytes(glb)
+    (directory / "albedo.png").write_bytes(b"\x89PNG\r\n\x1a\n albedo")
+    report = {"pixel_size_um": 50, "image_size": {"width": 256, "height": 192}}
+    (directory / "report.json").write_text(json.dumps(report))
+    job_id = job_helpers.new_job(world, tablet_id=world.public_a)
+    with world.session() as session:
+        jobs.mark_running(session, job_id=job_id)
+        return jobs.mark_succeeded(session, job_id=job_id, model_dir=directory, storage=store).id
+
+
+def test_the_3d_manifest_puts_each_region_in_its_scene(client, world, store, tmp_path, obverse):
+    import trimesh
+
+    from worker.recon.gltf_frame import gltf_root_matrix, wrap_scene_in_gltf_frame
+
+    vertices = np.array([[0.0, 0.0, 0.0], [12.0, 0.0, 0.0], [0.0, 9.0, -1.0]])
+    scene = trimesh.Scene()
+    scene.add_geometry(trimesh.Trimesh(vertices=vertices, faces=[[0, 1, 2]]))
+    glb = wrap_scene_in_gltf_frame(scene.export(file_type="glb"))
+    post(client, world, obverse)  # its model.glb is not a GLB: no scene region, no error
+    model_id = _model_with_glb(world, store, tmp_path, glb)
+    created = post(client, world, model_id, comment="checked").json()
+
+    manifest = client.get(f"{API}/tablets/{world.public_a}/iiif/3d/manifest.json").json()
+    (scene_json,) = [s for s in manifest["items"] if s["label"]["en"] == ["obverse"]]
+    (page,) = scene_json["annotations"]
+    (annotation,) = page["items"]
+    assert annotation["motivation"] == ["commenting"]
+    assert [b["purpose"] for b in annotation["body"]] == ["identifying", "commenting"]
+    target = annotation["target"]
+    assert target["source"] == {"id": scene_json["id"], "type": "Scene"}
+    (selector,) = target["selector"]
+    assert selector["type"] == "WktSelector"
+    ring = selector["value"].removeprefix("POLYGON Z ((").removesuffix("))").split(", ")
+    got = np.array([[float(v) for v in p.split()] for p in ring])
+    # Scan frame mm → glTF metres, +Y up, the box centred (worker/recon/gltf_frame.py).
+    matrix = gltf_root_matrix(vertices.min(axis=0), vertices.max(axis=0))
+    points = np.array(TRIANGLE_MM + TRIANGLE_MM[:1])
+    expected = points @ matrix[:3, :3].T + matrix[:3, 3]
+    assert np.allclose(got, expected, atol=1e-6), (got, expected)
+    served = client.get(urlsplit(annotation["id"]).path)
+    assert served.status_code == 200 and served.json()["id"] == annotation["id"]
+    assert annotation["id"].endswith(f"/annotations/{created['annotationId']}")
