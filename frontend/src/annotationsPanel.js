@@ -84,6 +84,8 @@ export function bindAnnotations(viewer, { container, canvas, stopTools }) {
 
   function setModel(next) {
     model = next;
+    // A region drawn on the previous version does not belong to this one.
+    if (!form.hidden) closeForm();
     stopDrawing();
     newButton.hidden = !canAnnotate(me) || !model;
     redraw();

@@ -79,7 +79,8 @@ def test_a_scholar_ties_a_region_to_a_sign_and_finds_it_again(
     assert "4 points" in page.locator("#annotation-status").text_content()
 
     # A line the transliteration does not have: the server's 422 names it.
-    page.locator("#annotation-reference").fill("o 9 1")
+    page.locator("#annotation-reference").fill("")
+    page.locator("#annotation-reference").press_sequentially("o 9 1")  # keys, not shortcuts
     page.locator("#annotation-save").click()
     page.wait_for_selector("#annotation-error:not([hidden])")
     assert "the obverse has no line '9'" in page.locator("#annotation-error").text_content()
@@ -131,6 +132,30 @@ def test_a_scholar_ties_a_region_to_a_sign_and_finds_it_again(
     page.wait_for_function(
         "() => !document.getElementById('annotation-count').textContent.includes('matching')"
     )
+
+    # The author edits the comment (the region stays), then a second annotation is deleted.
+    page.locator('#annotation-list li[data-ref="o 1 3"] button.edit').click()
+    assert page.locator("#annotation-reference").input_value() == "o 1 3"
+    page.locator("#annotation-comment").fill("determinative, clear")
+    page.locator("#annotation-save").click()
+    page.wait_for_function(
+        "() => document.getElementById('annotation-list').textContent.includes('clear')"
+    )
+    edited = page.evaluate("() => window.hammurabi.annotations.state.items[0]")
+    assert (
+        edited["comment"] == "determinative, clear" and edited["polygonMm"] == stored["polygonMm"]
+    )
+    page.locator("#annotation-new").click()
+    for x, y in [(5.0, 5.0), (8.0, 5.0), (8.0, 8.0)]:
+        sx, sy = tools.screen_of(page, (x, y, 0.0))
+        page.mouse.click(sx, sy)
+    page.locator("#annotation-reference").fill("o 2 2")
+    page.locator("#annotation-save").click()
+    page.wait_for_selector('#annotation-list li[data-ref="o 2 2"]')
+    page.once("dialog", lambda dialog: dialog.accept())
+    page.locator('#annotation-list li[data-ref="o 2 2"] button.delete').click()
+    page.wait_for_selector('#annotation-list li[data-ref="o 2 2"]', state="detached")
+    assert page.locator("#annotation-list li").count() == 1
 
     # The older version does not show this version's region, but lists it.
     page.locator("#model-select").select_option(str(library.models["v1"]))
