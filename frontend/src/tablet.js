@@ -7,6 +7,7 @@ import { el, formatDate, showError } from './dom.js';
 import { bindViewerUi } from './viewer/ui.js';
 import { bindCite } from './viewer/citeUi.js';
 import { bindPhotoPanel } from './viewer/photos.js';
+import { bindAnnotations } from './annotationsPanel.js';
 import { decodeViewState, encodeViewState } from './viewer/permalink.js';
 import { createViewer } from './viewer/viewer.js';
 
@@ -81,6 +82,8 @@ bindCite({
   },
 });
 
+const annotations = bindAnnotations(viewer, { container: $('annotations'), canvas: $('viewer'), stopTools: () => ui.stopTools() });
+
 /** The tablet and model on screen, for citations and exported files. */
 function describeShown() {
   return {
@@ -88,12 +91,12 @@ function describeShown() {
     pNumber: tablet?.p_number ?? null,
     modelId: currentModel?.id,
     modelVersion: currentModel?.version,
-    licence: currentModel?.licence ?? tablet?.effective_licence ?? null,
-    attribution: currentModel?.attribution ?? tablet?.effective_attribution ?? null,
+    licence: currentModel?.effective_licence ?? tablet?.effective_licence ?? null,
+    attribution: currentModel?.effective_attribution ?? tablet?.effective_attribution ?? null,
   };
 }
 // For the console and for tests: the page's viewer.
-window.hammurabi = { viewer, ui };
+window.hammurabi = { viewer, ui, annotations };
 
 function scheduleHash() {
   clearTimeout(hashTimer);
@@ -260,6 +263,7 @@ async function showModel(modelId) {
       if (restore.state.measure) ui.restoreMeasure(restore.state.measure);
     }
     renderFaces(model);
+    annotations.setModel(model);
     scheduleHash();
     $('viewer').dataset.loaded = String(model.id);
   } catch (err) {
@@ -320,6 +324,7 @@ async function main() {
   try {
     tablet = await api.getTablet(tabletId);
     renderCatalogue(tablet);
+    annotations.setTablet(tablet).catch(reportError);
     await refreshScans({ pickModel: true });
   } catch (err) {
     reportError(err);

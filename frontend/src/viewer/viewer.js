@@ -461,9 +461,22 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
 
   // --- picking and overlay ----------------------------------------------------------------
 
-  /** The model point under a page (CSS pixel) position: {point (mm), uv} or null. */
+  /** The model point under a page (CSS pixel) position: {point (mm), uv, part} or null
+   * (part: the whole tablet's face that was hit, else null). */
   function pick(clientX, clientY) {
-    return model ? pickPoint(canvas, camera, model.mesh, clientX, clientY) : null;
+    const hit = model ? pickPoint(canvas, camera, model.mesh, clientX, clientY) : null;
+    if (hit) hit.part = model.parts && hit.group !== null ? (model.parts.names[hit.group] ?? null) : null;
+    return hit;
+  }
+
+  /** Draw an object over the model (annotation regions); returns a function removing it. */
+  function addOverlay(object) {
+    scene.add(object);
+    invalidate();
+    return () => {
+      scene.remove(object);
+      invalidate();
+    };
   }
 
   /** The light's unit direction in the world frame (a face model's scan frame). */
@@ -630,6 +643,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     lightWorld,
     setState,
     pick,
+    addOverlay,
     project,
     mmPerPixel,
     setMarks,
