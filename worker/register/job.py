@@ -4,7 +4,8 @@ Fetches the latest model of each scan of the job's tablet, registers them
 (:func:`worker.register.run.register_model_dirs`) and stores the result as a tablet-level
 model (no scan) through ``backend.jobs.mark_succeeded``: its assets are ``model.glb`` (the
 one-node-per-face scene, so the viewer shows the whole tablet), ``faces/<label>/*.png`` (each
-face's full-resolution normals, blending weight and shading maps), ``merged.ply``,
+face's full-resolution normals blended across the seams, quality weight and shading maps),
+``faces/<label>/quality/*.npy`` (the face's quality maps), ``merged.ply``,
 ``transforms.json``, ``report.json`` and ``fatcross/*.png``.
 """
 
@@ -21,7 +22,7 @@ from sqlalchemy import select
 from backend import jobs
 from backend.licences import effective
 from backend.tables import Job, Model, Tablet
-from worker.register.io import SHADING_MAPS, RegisterInputError, write_output_dir
+from worker.register.io import QUALITY_MAPS, SHADING_MAPS, RegisterInputError, write_output_dir
 from worker.register.plates import DEFAULT_LICENCE
 from worker.register.run import register_model_dirs
 
@@ -34,6 +35,7 @@ MODEL_FILES = (
     "mask.png",
     "albedo.png",
     *SHADING_MAPS,
+    *(f"quality/{name}" for name in QUALITY_MAPS),
 )
 
 
@@ -96,6 +98,7 @@ def run_job(job_id: int, session_factory, storage, progress: Callable[..., None]
         for scan_id, prefix in models:
             d = work / f"scan-{scan_id}"
             d.mkdir()
+            (d / "quality").mkdir()
             for file in MODEL_FILES:
                 if storage.exists(f"{prefix}/{file}"):
                     storage.get_file(f"{prefix}/{file}", d / file)
