@@ -10,8 +10,9 @@
 
 Registration starts by itself: after a reconstruction succeeds (and after a registration
 ends) :func:`schedule_registration` creates and sends ONE register job for the tablet when
-it has models of two or more faces, none is queued or running, and a face model is newer
-than the start of the last registration. Redelivered messages find that job and add none.
+it has models of two or more faces, none is queued or running, no reconstruction of the
+tablet is queued or running (a set of faces uploaded together is registered once, when its
+last face is in), and a face model is newer than the start of the last registration. Redelivered messages find that job and add none.
 
 Thin: every change of a job row is a call into ``backend.jobs`` (claim, heartbeat, progress,
 retry wait, derived assets, success, failure) and every send goes through
@@ -387,7 +388,10 @@ _TASK_OPTIONS = {"bind": True, "acks_late": True, "max_retries": MAX_RETRIES}
 @app.task(name=jobs.TASK_BY_KIND[JobKind.reconstruct], **_TASK_OPTIONS)
 def reconstruct_scan(self, job_id: int) -> str:
     result = _run_job(self, int(job_id), _reconstruct)
-    if result == "succeeded":  # also on redelivery: a crash may have come before this step
+    # Also on redelivery (a crash may have come before this step), and after a failure: the
+    # registration waits for the tablet's pending reconstructions, so the last face of a set
+    # starts it whether or not that face itself succeeded.
+    if result in ("succeeded", "failed"):
         _follow_up(self, int(job_id))
     return result
 
