@@ -69,6 +69,9 @@ DISAGREE_K = 3.0
 # The local RMS of the disagreement: over a few pixels, so one wedge's rim does not spread
 # over its neighbours, but more than one, so a single noisy fringe pixel is averaged.
 RMS_SIGMA_PX = 2.0
+# The normals' noise along an integration path: averaged over this many pixels (a path is
+# tens of pixels long; one pixel's residual is itself noisy).
+PATH_SIGMA_PX = 8.0
 
 
 def _robust_sigma(values: np.ndarray) -> float:
@@ -156,8 +159,11 @@ def height_uncertainty_um(
         free[seed] = False
         dist = ndimage.distance_transform_edt(free)
         anchor_sigma = np.zeros(mask.shape)
-    # The path from the anchor crosses pixels of varying σ_θ: their local mean stands for it.
-    sig_path = ndimage.uniform_filter(sig_t, 5)
+    # The walk's variance is the sum of its steps' σ_θ² along the path: the local mean of σ_θ²
+    # (over the tablet, PATH_SIGMA_PX) stands for it, not one pixel's noisy value.
+    on = mask.astype(np.float64)
+    var_t = ndimage.gaussian_filter(np.where(mask, sig_t**2, 0.0), PATH_SIGMA_PX)
+    sig_path = np.sqrt(var_t / np.maximum(ndimage.gaussian_filter(on, PATH_SIGMA_PX), 1e-12))
     walk = pixel_size_um * np.tan(np.minimum(sig_path, 1.0)) * np.sqrt(dist)
     sigma = np.sqrt(anchor_sigma**2 + walk**2)
     out[mask] = sigma[mask]

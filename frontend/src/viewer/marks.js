@@ -48,7 +48,8 @@ const raycaster = new THREE.Raycaster();
 
 /**
  * The point of `object` under a page (CSS pixel) position, or null.
- * @returns {{point: number[], uv: number[] | null} | null} point in world units (mm)
+ * @returns {{point: number[], uv: number[] | null, part: number | null} | null} point in world
+ *   units (mm); part: the face of a multi-part model
  */
 export function pickPoint(canvas, camera, object, clientX, clientY) {
   const rect = canvas.getBoundingClientRect();
@@ -61,7 +62,9 @@ export function pickPoint(canvas, camera, object, clientX, clientY) {
   const materialOf = (h) => (Array.isArray(object.material) ? object.material[h.face?.materialIndex ?? 0] : object.material);
   const hit = raycaster.intersectObject(object, false).find((h) => materialOf(h)?.visible !== false);
   if (!hit) return null;
-  return { point: hit.point.toArray(), uv: hit.uv ? hit.uv.toArray() : null };
+  // part: the draw group's material index, i.e. the face of a whole tablet (null: one mesh).
+  const part = Array.isArray(object.material) ? (hit.face?.materialIndex ?? null) : null;
+  return { point: hit.point.toArray(), uv: hit.uv ? hit.uv.toArray() : null, part };
 }
 
 /** Page (CSS pixel) position of a world point (mm). */
