@@ -617,7 +617,22 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     persp.fov = (2 * Math.atan(Math.tan((PERSPECTIVE_FOV_DEG * Math.PI) / 360) * grow) * 180) / Math.PI;
     ortho.updateProjectionMatrix();
     persp.updateProjectionMatrix();
+    const u = material.uniforms;
+    const savedLens = [u.uLensCentre.value.clone(), u.uLensRadius.value];
+    const lens = state.enhance.lens;
+    if (lens) {
+      // The lens where it is on the canvas: canvas NDC → view → the shot's wider frame.
+      const ch = canvas.clientHeight || 1;
+      const nx = (2 * lens.x) / (canvas.clientWidth || 1) - 1;
+      const ny = 1 - (2 * lens.y) / ch;
+      const sx = (nx * canvasAspect) / (grow * aspect);
+      const sy = ny / grow;
+      u.uLensCentre.value.set(((sx + 1) / 2) * w, ((sy + 1) / 2) * h);
+      u.uLensRadius.value = (lens.radius * h) / (ch * grow);
+    }
     render();
+    u.uLensCentre.value.copy(savedLens[0]);
+    u.uLensRadius.value = savedLens[1];
     const blobPromise = new Promise((resolve, reject) =>
       canvas.toBlob((b) => (b ? resolve(b) : reject(new Error('the browser could not encode the PNG'))), 'image/png'),
     );

@@ -221,6 +221,18 @@ def test_lens_shows_another_mode_inside_a_movable_circle(scholar_page, tools):
     assert np.abs(far - _pixel(page, tools, plain, (8.0, 16.0, -1.0))).max() < 0.02
     assert page.locator("#trust-legend").is_visible()  # the lens shows trust: its legend too
     _shot(page, "viewer-lens.png")
+    # A screenshot (viewer.screenshot) draws the lens where it is on the canvas, at any size:
+    # at twice the canvas' size, twice as far from the corner.
+    w, h = round(box["width"]), round(box["height"])
+    shot = tools.render_pixels(page, 2 * w, 2 * h)
+    c = shot[
+        round(2 * lens["y"]) - 3 : round(2 * lens["y"]) + 4,
+        round(2 * lens["x"]) - 3 : round(2 * lens["x"]) + 4,
+    ]
+    centre = c.reshape(-1, 3).mean(axis=0)
+    assert _hue_distance(centre, NORMALS_RGB) < _hue_distance(centre, AGREE_RGB), centre
+    edge = shot[round(2 * lens["y"]), round(2 * (lens["x"] - 1.3 * lens["radius"]))]
+    assert _hue_distance(edge, NORMALS_RGB) > 0.1, edge  # outside the lens: clay
     page.locator("#lens-on").uncheck()
     tools.settle(page)
     assert page.evaluate("() => window.hammurabi.viewer.enhance.lens") is None
@@ -311,3 +323,85 @@ def test_section_outline_and_svg(scholar_page, tools, trust_library):
     assert w_mm == pytest.approx(width * 1.16, rel=0.02)  # 8 % margin each side
     assert "P999002" in svg and "scalebar" in svg
     page.locator("#section-close").click()
+
+
+def test_lens_and_enhancements_come_back_from_the_permalink(scholar_page, tools, trust_library):
+    page = scholar_page
+    page.locator("#unsharp-normals").fill("1.5")
+    page.locator("#lens-on").check()
+    tools.settle(page)
+    url = page.evaluate("() => window.hammurabi.ui.permalinkUrl()")
+    assert "un=1.5" in url and "lz=trust" in url
+    lens = page.evaluate("() => window.hammurabi.viewer.enhance.lens")
+    page.goto("about:blank")
+    page.goto(url)
+    page.wait_for_function(
+        "want => document.getElementById('viewer').dataset.loaded === want",
+        arg=str(trust_library.models["trust"]),
+        timeout=30000,
+    )
+    tools.settle(page)
+    back = page.evaluate("() => window.hammurabi.viewer.enhance")
+    assert back["normalUnsharp"] == 1.5 and back["lens"] == lens
+    assert page.locator("#lens-on").is_checked() and page.locator("#lens-ring").is_visible()
+
+
+def _slabs(model_dir: Path) -> None:
+    """A whole tablet of two 18 × 30 × 4 mm slabs side by side (nodes obverse, reverse)."""
+    import trimesh
+
+    scene = trimesh.Scene()
+    for name, x in (("obverse", -11.0), ("reverse", 11.0)):
+        slab = trimesh.creation.box(extents=(18.0, 30.0, 4.0))
+        slab.apply_translation((x, 0.0, 0.0))
+        scene.add_geometry(slab, node_name=name, geom_name=name)
+    model_dir.mkdir(parents=True)
+    (model_dir / "model.glb").write_bytes(scene.export(file_type="glb"))
+    (model_dir / "report.json").write_text(json.dumps({"scans": ["obverse", "reverse"]}))
+
+
+def test_section_through_a_whole_tablet_cuts_its_shown_faces(
+    browser, tmp_path_factory, server_module, tools
+):
+    tmp = tmp_path_factory.mktemp("slabs")
+    lib = server_module.start_library(tmp / "lib")
+    try:
+        _slabs(tmp / "whole")
+        model = lib.add_tablet_model("P999003", tmp / "whole")
+        context = browser.new_context(viewport={"width": 960, "height": 600}, accept_downloads=True)
+        page = context.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.goto(f"{lib.url}/tablet.html?id={lib.tablets['P999003']}")
+        page.wait_for_function(
+            "want => document.getElementById('viewer').dataset.loaded === want",
+            arg=str(model),
+            timeout=30000,
+        )
+        tools.settle(page)
+        panel = page.locator("#section-panel")
+        _click_points(page, tools, "x", [(-15.0, 0.0, -2.0), (15.0, 0.0, -2.0)])
+        panel.wait_for(state="visible")
+        # Two closed rectangles: 40 mm from the left slab's rim to the right one's, 4 mm deep.
+        assert page.locator("#section-readout").inner_text().startswith("2 outlines,")
+        assert float(panel.get_attribute("data-width-mm")) == pytest.approx(40.0, abs=0.01)
+        assert float(panel.get_attribute("data-depth-mm")) == pytest.approx(4.0, abs=0.01)
+        page.locator("#section-close").click()
+        page.locator("#faces input[data-face='reverse']").uncheck()
+        tools.settle(page)
+        # The tool stays on (as the distance tool does): two more clicks, another section.
+        for p in [(-15.0, 0.0, -2.0), (-5.0, 0.0, -2.0)]:
+            page.mouse.click(*tools.screen_of(page, p))
+        panel.wait_for(state="visible")
+        assert page.locator("#section-readout").inner_text().startswith("1 outline,")
+        assert float(panel.get_attribute("data-width-mm")) == pytest.approx(18.0, abs=0.01)
+        # These faces have no normals.png: the best light says why it cannot help.
+        page.locator("#section-close").click()
+        page.locator("#viewer").focus()
+        page.keyboard.press("w")
+        page.mouse.click(*tools.screen_of(page, (-11.0, -5.0, -2.0)))
+        assert "no normals.png" in page.locator("#readout").inner_text()
+        context.close()
+        assert not errors, errors
+    finally:
+        lib.stop()
