@@ -55,6 +55,7 @@ from worker.assets import derive_assets as write_derived_assets
 from worker.celery_app import app
 from worker.photos import write_photo_assets
 from worker.tiles import TileError, build_tiles
+from worker.trust_assets import QUALITY_INPUTS
 
 log = logging.getLogger("worker.tasks")
 
@@ -307,7 +308,16 @@ def _derive(beat: _Beat, job: Job) -> str:
     )
     try:
         beat.progress("fetch", 0.1, force=True)
-        for name in ("height.npy", "normals.npy", "report.json", "albedo.png", "normals.png"):
+        quality = [f"quality/{n}.npy" for n in QUALITY_INPUTS]  # the trust map's inputs
+        (work / "quality").mkdir(exist_ok=True)
+        for name in (
+            "height.npy",
+            "normals.npy",
+            "report.json",
+            "albedo.png",
+            "normals.png",
+            *quality,
+        ):
             key = f"{prefix}/{name}"
             if storage.exists(key):
                 storage.get_file(key, work / name)

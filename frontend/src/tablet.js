@@ -5,6 +5,7 @@
 import * as api from './api.js';
 import { el, formatDate, showError } from './dom.js';
 import { bindViewerUi } from './viewer/ui.js';
+import { bindScholarTools } from './viewer/scholar.js';
 import { bindCite } from './viewer/citeUi.js';
 import { bindPhotoPanel } from './viewer/photos.js';
 import { bindAnnotations } from './annotationsPanel.js';
@@ -42,14 +43,24 @@ let restoring = decodeViewState(window.location.hash);
 
 let ui = null; // bound below; the viewer reports changes while it is being created
 let photos = null;
+let scholar = null;
 const viewer = createViewer($('viewer'), {
   onChange: () => {
     ui?.changed();
     photos?.changed();
+    scholar?.changed();
     if (currentModel) scheduleHash();
   },
 });
+scholar = bindScholarTools(viewer, {
+  assetUrl: (name) => (currentModel?.assets?.[name] ? api.assetHref(currentModel.assets[name]) : null),
+  getPixelSizeUm: () => Number(currentModel?.report?.pixel_size_um) || null,
+  baseName: () => (tablet?.designation ?? `tablet-${tabletId}`).replace(/[^\w.-]+/g, '_'),
+  describe: describeShown,
+});
 ui = bindViewerUi(viewer, {
+  uncertainty: scholar.uncertainty,
+  onAction: scholar.onAction,
   getHeightUrl: () => (currentModel?.assets?.['height.npy'] ? api.assetHref(currentModel.assets['height.npy']) : null),
   getPixelSizeUm: () => Number(currentModel?.report?.pixel_size_um) || null,
   baseName: () => (tablet?.designation ?? `tablet-${tabletId}`).replace(/[^\w.-]+/g, '_'),
@@ -96,7 +107,7 @@ function describeShown() {
   };
 }
 // For the console and for tests: the page's viewer.
-window.hammurabi = { viewer, ui, annotations };
+window.hammurabi = { viewer, ui, annotations, scholar };
 
 function scheduleHash() {
   clearTimeout(hashTimer);
@@ -229,6 +240,7 @@ async function showModel(modelId) {
   loadController = new AbortController();
   const { signal } = loadController;
   ui.stopTools();
+  scholar.stop();
   $('progress').hidden = false;
   $('progress-fill').style.width = '0%';
   $('progress-label').textContent = 'Loading the model…';

@@ -48,8 +48,9 @@ const raycaster = new THREE.Raycaster();
 
 /**
  * The point of `object` under a page (CSS pixel) position, or null.
- * @returns {{point: number[], uv: number[] | null, group: number | null} | null} point in
- *   world units (mm); group: the material index hit (a whole tablet's part)
+ * @returns {{point: number[], uv: number[] | null, group: number | null, part: number | null} | null}
+ *   point in world units (mm); group: the material index hit; part: the face of a
+ *   multi-part model (the same index, null for a one-mesh model)
  */
 export function pickPoint(canvas, camera, object, clientX, clientY) {
   const rect = canvas.getBoundingClientRect();
@@ -62,7 +63,9 @@ export function pickPoint(canvas, camera, object, clientX, clientY) {
   const materialOf = (h) => (Array.isArray(object.material) ? object.material[h.face?.materialIndex ?? 0] : object.material);
   const hit = raycaster.intersectObject(object, false).find((h) => materialOf(h)?.visible !== false);
   if (!hit) return null;
-  return { point: hit.point.toArray(), uv: hit.uv ? hit.uv.toArray() : null, group: hit.face?.materialIndex ?? null };
+  // part: the draw group's material index, i.e. the face of a whole tablet (null: one mesh).
+  const part = Array.isArray(object.material) ? (hit.face?.materialIndex ?? null) : null;
+  return { point: hit.point.toArray(), uv: hit.uv ? hit.uv.toArray() : null, group: hit.face?.materialIndex ?? null, part };
 }
 
 /** Page (CSS pixel) position of a world point (mm). */

@@ -22,6 +22,8 @@ import { applyPartShading, createPartMaterial, createRelightMaterial, MODE_INDEX
 import { defaultViewState, SHADING_MODES } from './permalink.js';
 import { applyHiddenParts, createPartToggles, hiddenParts } from './parts.js';
 import { availableViews, canonicalView } from './views.js';
+import { applyEnhance, defaultEnhance } from './enhance.js';
+import { TRUST_LAYERS } from './trust.js';
 
 const PERSPECTIVE_FOV_DEG = 30;
 
@@ -59,6 +61,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
   const hiddenMaterial = new THREE.MeshBasicMaterial({ visible: false });
   let model = null; // {mesh, assets, box, missing: Set}
   const state = defaultViewState();
+  state.enhance = defaultEnhance();
   const pendingLoads = new Set();
   let frameRequested = false;
   let disposed = false;
@@ -196,7 +199,11 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     applyShading();
     invalidate();
     onChange('shading');
-    const kind = LAZY_KINDS[next.mode];
+    ensureKind(LAZY_KINDS[next.mode]);
+  }
+
+  /** Load a lazily loaded kind of map (modes.js' LAZY_KINDS) once, then apply it. */
+  function ensureKind(kind) {
     if (kind && model && model.assets[kind] === null) {
       const m = model;
       const job = m.assets
@@ -213,6 +220,23 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
         });
       pendingLoads.add(job);
     }
+  }
+
+  /**
+   * Unsharp masking of the normals and of the luminance, and the lens (enhance.js): shader
+   * options shared by every face. `lens`: null, or {mode, x, y, radius} in CSS pixels of the
+   * canvas (x right, y down from its top-left corner).
+   */
+  function setEnhance(next) {
+    state.enhance = applyEnhance(
+      material.uniforms,
+      { ...state.enhance, ...next },
+      { pixelRatio: renderer.getPixelRatio(), canvasHeight: canvas.clientHeight || 1 },
+      MODE_INDEX,
+    );
+    if (state.enhance.lens) ensureKind(LAZY_KINDS[state.enhance.lens.mode]);
+    invalidate();
+    onChange('enhance');
   }
 
   /** Resolves when the maps requested so far have loaded (or failed). */
@@ -245,6 +269,10 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       has = true;
     }
     u.uHasTexture.value = has;
+    // The trust map is bound whenever it is loaded: the lens may show it over another mode.
+    u.uHasTrust.value = Boolean(a?.trust);
+    if (a?.trust) u.uTrustMap.value = a.trust.texture;
+    u.uTrustLayer.value = Math.max(0, TRUST_LAYERS.indexOf(s.trustLayer));
     for (const [i, m] of (model?.partMaterials ?? []).entries()) applyPartShading(m, a.faces[i], s, has);
   }
 
@@ -497,6 +525,24 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     return (2 * d * Math.tan((PERSPECTIVE_FOV_DEG * Math.PI) / 360)) / h;
   }
 
+  /**
+   * Add a three.js object (in model mm) to the scene, drawn with the model (e.g. a section's
+   * outline); returns a function that removes it. The caller owns and disposes the object.
+   */
+  function addOverlay(object) {
+    scene.add(object);
+    invalidate();
+    return () => {
+      scene.remove(object);
+      invalidate();
+    };
+  }
+
+  /** The camera, for tools that project or render regions (read-only use). */
+  function getCamera() {
+    return camera;
+  }
+
   function clearOverlay() {
     marks.clear();
     invalidate();
@@ -525,6 +571,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       light: { ...state.light },
       shading: { ...state.shading },
       hidden: hiddenParts(model?.parts),
+      enhance: { ...state.enhance, lens: state.enhance.lens ? { ...state.enhance.lens } : null },
     };
   }
 
@@ -543,6 +590,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     if (next.model !== undefined) state.model = next.model;
     if (next.light) setLight(next.light);
     if (next.shading) setShading(next.shading);
+    if (next.enhance) setEnhance(next.enhance);
     if (next.camera) {
       if (next.camera.projection === 'perspective') {
         camera = persp;
@@ -592,7 +640,22 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     persp.fov = (2 * Math.atan(Math.tan((PERSPECTIVE_FOV_DEG * Math.PI) / 360) * grow) * 180) / Math.PI;
     ortho.updateProjectionMatrix();
     persp.updateProjectionMatrix();
+    const u = material.uniforms;
+    const savedLens = [u.uLensCentre.value.clone(), u.uLensRadius.value];
+    const lens = state.enhance.lens;
+    if (lens) {
+      // The lens where it is on the canvas: canvas NDC → view → the shot's wider frame.
+      const ch = canvas.clientHeight || 1;
+      const nx = (2 * lens.x) / (canvas.clientWidth || 1) - 1;
+      const ny = 1 - (2 * lens.y) / ch;
+      const sx = (nx * canvasAspect) / (grow * aspect);
+      const sy = ny / grow;
+      u.uLensCentre.value.set(((sx + 1) / 2) * w, ((sy + 1) / 2) * h);
+      u.uLensRadius.value = (lens.radius * h) / (ch * grow);
+    }
     render();
+    u.uLensCentre.value.copy(savedLens[0]);
+    u.uLensRadius.value = savedLens[1];
     const blobPromise = new Promise((resolve, reject) =>
       canvas.toBlob((b) => (b ? resolve(b) : reject(new Error('the browser could not encode the PNG'))), 'image/png'),
     );
@@ -653,6 +716,9 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     memory,
     whenIdle,
     invalidate,
+    setEnhance,
+    addOverlay,
+    getCamera,
     partNames,
     setPartVisible,
     dispose,
@@ -668,6 +734,9 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     },
     get shading() {
       return { ...state.shading };
+    },
+    get enhance() {
+      return { ...state.enhance, lens: state.enhance.lens ? { ...state.enhance.lens } : null };
     },
     get projection() {
       return camera.isOrthographicCamera ? 'orthographic' : 'perspective';
