@@ -287,3 +287,28 @@ def test_on_the_whole_tablet_the_region_is_also_on_its_face_image_grid(
     across = page.evaluate("() => window.hammurabi.annotations.state.items[1]")
     assert across["polygonPx"] is None and len(across["target"]) == 1
     assert np.allclose(np.array(across["polygonMm"])[:, :2], [(9, 3), (17, 3), (17, 7)], atol=0.3)
+
+
+def test_a_model_licence_set_by_staff_is_in_the_citation(browser, own_library, tools):
+    """Issue 18: a model version's own licence and credit reach what a reader copies."""
+    model_id = own_library.models["v1"]
+    licence = "https://creativecommons.org/licenses/by-sa/4.0/"
+    with httpx.Client(base_url=own_library.url) as http:
+        login = {"email": "curator@example.org", "password": "clay tablets are patient"}
+        assert http.post("/api/v1/auth/login", json=login).status_code == 200
+        changed = http.patch(
+            f"/api/v1/models/{model_id}",
+            json={"licence": licence, "attribution": "Scan by the Test Museum lab"},
+        )
+        assert changed.status_code == 200, changed.text
+    context = browser.new_context(viewport={"width": 960, "height": 600})
+    page = context.new_page()
+    try:
+        tools.open_tablet(page, own_library, model="v1")
+        page.locator("#cite").click()
+        text = page.locator("#cite-text").input_value()
+        bibtex = page.locator("#cite-bibtex").input_value()
+    finally:
+        context.close()
+    assert f"Licence: {licence}" in text and "Scan by the Test Museum lab" in text
+    assert f"licence: \\url{{{licence}}}" in bibtex
