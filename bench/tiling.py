@@ -63,6 +63,18 @@ def _reconstruct(bundle: str, out: str) -> None:
     reconstruct_bundle(bundle, out)
 
 
+def _simulate(out: str) -> None:
+    from worker.simulate import simulate_scan
+
+    simulate_scan(Path(out), seed=0, preset="paper", noise="default")
+
+
+def _large(out: str, w: int, h: int) -> None:
+    from worker.simulate.large_face import write_large_face
+
+    write_large_face(out, width_px=w, height_px=h)
+
+
 def _tile(model_dir: str) -> None:
     from worker.tiles import build_tiles
 
@@ -83,12 +95,11 @@ def main() -> int:
     args.work.mkdir(parents=True, exist_ok=True)
     rows = []
 
-    from worker.simulate import simulate_scan
-    from worker.simulate.large_face import write_large_face
-
+    # Everything heavy runs in child processes: a child's peak RSS (ru_maxrss) starts from
+    # its parent's resident size at the fork, so this process stays small.
     scan = args.work / "paper-default-s0"
     if not (scan / "gt").exists():
-        simulate_scan(scan, seed=0, preset="paper", noise="default")
+        timed("__main__._simulate", str(scan))
     with tempfile.TemporaryDirectory(dir=args.work) as tmp:
         model = Path(tmp) / "model"
         recon_s, recon_mib = timed("__main__._reconstruct", str(scan / "bundle"), str(model))
@@ -111,9 +122,8 @@ def main() -> int:
         w, h = (int(v) for v in args.large.lower().split("x"))
         large = args.work / f"large-{w}x{h}"
         if not (large / "report.json").exists():
-            t0 = time.perf_counter()
-            write_large_face(large, width_px=w, height_px=h)
-            print(f"(large face written in {time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+            seconds, mib = timed("__main__._large", str(large), w, h)
+            print(f"(large face written in {seconds:.0f} s, peak {mib:.0f} MiB)", file=sys.stderr)
         with tempfile.TemporaryDirectory(dir=args.work) as tmp:
             model = _copy_without_tiles(large, Path(tmp) / "model")
             tile_s, tile_mib = timed("__main__._tile", str(model))
