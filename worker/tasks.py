@@ -3,8 +3,8 @@
 - ``worker.tasks.reconstruct_scan(job_id)``: fetch the scan's bundle from storage,
   ``worker.pipeline.reconstruct_bundle``, derive the viewer's assets (``worker.assets``), build
   the tiles for streaming (``worker.tiles``), store the model directory and its row (``backend.jobs.mark_succeeded``: files + row together).
-- ``worker.tasks.derive_assets(job_id)``: (re)derive the assets of the latest model of the
-  job's scan, e.g. for models made before an asset existed.
+- ``worker.tasks.derive_assets(job_id)``: (re)derive the assets and the tiles of the latest
+  model of the job's scan, e.g. for models made before an asset existed.
 - ``worker.tasks.register_tablet(job_id)``: register a tablet's faces with
   ``worker.register`` when that module exists (another engineer's).
 
@@ -316,23 +316,30 @@ def _derive(beat: _Beat, job: Job) -> str:
             "report.json",
             "albedo.png",
             "normals.png",
+            "model.glb",
             *quality,
         ):
             key = f"{prefix}/{name}"
             if storage.exists(key):
                 storage.get_file(key, work / name)
-        beat.progress("assets", 0.4, force=True)
+        beat.progress("assets", 0.3, force=True)
         names = write_derived_assets(work)
-        beat.progress("store", 0.9, force=True)
+        # The tiles too (models made before worker.tiles existed get theirs here).
+        beat.progress("tiles", 0.5, force=True)
+        _build_tiles(work, lambda stage, f: beat.progress("tiles", 0.5 + 0.3 * f))
+        beat.progress("store", 0.85, force=True)
         stats = {name: storage.put_file(f"{prefix}/{name}", work / name) for name in names}
+        if (work / "tiles" / "index.json").is_file():
+            for s in storage.put_tree(f"{prefix}/tiles", work / "tiles"):
+                stats[s.key[len(prefix) + 1 :]] = s
         with capp.session_factory()() as session:
             jobs.store_derived_assets(
                 session,
                 job_id=job.id,
                 model_id=model_id,
-                assets={
-                    n: {"size_bytes": s.size_bytes, "sha256": s.etag} for n, s in stats.items()
-                },
+                assets=jobs.recorded_assets(
+                    {n: {"size_bytes": s.size_bytes, "sha256": s.etag} for n, s in stats.items()}
+                ),
             )
         return "succeeded"
     finally:
