@@ -7,6 +7,7 @@ import { el, formatDate, showError } from './dom.js';
 import { bindViewerUi } from './viewer/ui.js';
 import { bindCite } from './viewer/citeUi.js';
 import { decodeViewState, encodeViewState } from './viewer/permalink.js';
+import { tileOptionsFromSearch } from './viewer/tilesIndex.js';
 import { createViewer } from './viewer/viewer.js';
 
 const $ = (id) => document.getElementById(id);
@@ -221,6 +222,7 @@ async function showModel(modelId) {
     await viewer.load({
       assets,
       signal,
+      tiles: tileOptionsFromSearch(location.search).options, // streamed models: GPU budget
       onProgress: (fraction, label) => {
         $('progress-fill').style.width = `${Math.round(fraction * 100)}%`;
         $('progress-label').textContent = `Loading the model: ${label}`;

@@ -22,6 +22,7 @@ import { applyPartShading, createPartMaterial, createRelightMaterial, MODE_INDEX
 import { defaultViewState, SHADING_MODES } from './permalink.js';
 import { applyHiddenParts, createPartToggles, hiddenParts } from './parts.js';
 import { availableViews, canonicalView } from './views.js';
+import { tilesIndexUrl } from './tilesIndex.js';
 
 const PERSPECTIVE_FOV_DEG = 30;
 
@@ -117,6 +118,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     camera.getWorldDirection(u.uViewDirOrtho.value).negate();
     u.uProjection.value.copy(camera.projectionMatrix);
     if (state.light.follow) updateLightDirection();
+    model?.tiles?.update(camera, renderer); // streaming: levels by screen-space error, loads
     renderer.render(scene, camera);
   }
 
@@ -245,6 +247,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       has = true;
     }
     u.uHasTexture.value = has;
+    model?.tiles?.applyShading(s);
     for (const [i, m] of (model?.partMaterials ?? []).entries()) applyPartShading(m, a.faces[i], s, has);
   }
 
@@ -373,7 +376,8 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
    * @param {(fraction: number, label: string) => void} [source.onProgress]
    * @param {AbortSignal} [source.signal]
    */
-  async function load({ assets, onProgress = () => {}, signal } = {}) {
+  async function load({ assets, onProgress = () => {}, signal, tiles = {} } = {}) {
+    if (tilesIndexUrl(assets)) return loadTiled(assets, { signal, ...tiles });
     const loaded = await loadModelAssets(assets, { onProgress, signal });
     if (disposed || signal?.aborted) {
       loaded.dispose();
@@ -406,6 +410,29 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     u.uHeightRange.value.set(-bb.max.z, -bb.min.z);
     u.uObjectToWorld.value.setFromMatrix4(mesh.matrixWorld);
     setShading({}); // applies the mode and starts loading its maps
+    setView('obverse');
+    onChange('model');
+    return model;
+  }
+
+  /**
+   * A model with tiles/index.json: streamed (tiles.js) instead of the single mesh; the same
+   * material's light, mode and camera uniforms drive every tile.
+   * @param {{budgetMb?: number, errorTarget?: number}} options the tile cache's GPU budget
+   */
+  async function loadTiled(assets, { signal, budgetMb, errorTarget }) {
+    const { openTiledModel, tiledAssets } = await import('./tiles.js');
+    const tiled = await openTiledModel({ indexUrl: tilesIndexUrl(assets), baseMaterial: material, invalidate, budgetMb, errorTarget, signal });
+    if (disposed || signal?.aborted) {
+      tiled.dispose();
+      return null;
+    }
+    unloadModel();
+    scene.add(tiled.object);
+    const views = availableViews('face');
+    model = { mesh: tiled.object, tiles: tiled, assets: tiledAssets(tiled), box: tiled.box, radius: tiled.radius, errors: {}, parts: null, partMaterials: [], views };
+    material.uniforms.uHeightRange.value.set(-tiled.box.max[2], -tiled.box.min[2]);
+    setShading({});
     setView('obverse');
     onChange('model');
     return model;
@@ -588,6 +615,11 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     return { ...renderer.info.memory };
   }
 
+  /** A streamed model's figures (tiles.js `stats`), or null for a single-mesh model. */
+  function streaming() {
+    return model?.tiles?.stats() ?? null;
+  }
+
   function dispose() {
     if (disposed) return;
     unloadModel();
@@ -626,6 +658,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     missingMessage,
     screenshot,
     memory,
+    streaming,
     whenIdle,
     invalidate,
     partNames,
