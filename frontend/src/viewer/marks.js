@@ -58,8 +58,10 @@ export function pickPoint(canvas, camera, object, clientX, clientY) {
   );
   raycaster.setFromCamera(ndc, camera);
   // Hidden parts (draw groups with an invisible material) are not there to be picked.
-  const materialOf = (h) => (Array.isArray(object.material) ? object.material[h.face?.materialIndex ?? 0] : object.material);
-  const hit = raycaster.intersectObject(object, false).find((h) => materialOf(h)?.visible !== false);
+  const materialOf = (h) => (Array.isArray(h.object.material) ? h.object.material[h.face?.materialIndex ?? 0] : h.object.material);
+  // A streamed model is a group whose children are the tiles drawn now (tiles.js): search them.
+  const targets = object.isMesh ? [object] : object.children;
+  const hit = raycaster.intersectObjects(targets, !object.isMesh).find((h) => materialOf(h)?.visible !== false);
   if (!hit) return null;
   return { point: hit.point.toArray(), uv: hit.uv ? hit.uv.toArray() : null };
 }

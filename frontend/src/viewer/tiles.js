@@ -21,7 +21,9 @@ import * as THREE from 'three';
 import { TilesRenderer } from '3d-tiles-renderer/three';
 import { GLTFExtensionsPlugin } from '3d-tiles-renderer/three/plugins';
 import { MeshoptDecoder } from 'meshoptimizer/decoder';
+import { createHeightRows } from './heightRows.js';
 import { applyPartShading, createPartMaterial } from './material.js';
+import { bilinearHeight } from './profile.js';
 
 /** Default GPU memory budget of the tile cache (bytes). */
 export const DEFAULT_BUDGET_MB = 256;
@@ -254,6 +256,7 @@ export async function openTiledModel({
   }
   const sphere = box.getBoundingSphere(new THREE.Sphere());
 
+  const heights = index.height_raw ? streamedHeights(index, indexUrl) : null;
   let cameraInUse = null;
   let disposed = false;
 
@@ -275,6 +278,8 @@ export async function openTiledModel({
     /** World (scan-frame mm) bounding box of the tileset. */
     box: { min: box.min.toArray(), max: box.max.toArray() },
     radius: sphere.radius || 1,
+    /** Full-resolution heights (height.f32 by HTTP Range), or null: {reader, pixelSizeUm, onSurface}. */
+    heights,
     /** Call before each frame: culls, picks levels by screen-space error, queues loads. */
     update(camera, renderer) {
       if (disposed) return;
@@ -318,7 +323,7 @@ export async function openTiledModel({
       const s = tiles.stats;
       return {
         bytesUsed: tiles.lruCache.cachedBytes,
-        budgetBytes: tiles.lruCache.maxBytesSize,
+        budgetBytes: tiles.budgetBytes,
         queued: s.queued,
         downloading: s.downloading,
         parsing: s.parsing,
@@ -370,11 +375,53 @@ export function tiledAssets(tiled) {
   };
 }
 
+/**
+ * The measuring tools' access to `tiles/height.f32` (index.json `height_raw`).
+ * `onSurface(points)` puts picked points (mm) on the full-resolution surface: z = −h(x, y)/1000
+ * with h bilinear at the point's pixel (SCAN_BUNDLE.md: pixel (r, c) at (c·s, r·s) µm), so a
+ * distance picked on a coarse tile is still measured on the full-resolution surface; a point
+ * over a hole (NaN) keeps the mesh's z.
+ */
+function streamedHeights(index, indexUrl) {
+  const raw = index.height_raw;
+  if (raw.dtype !== '<f4' || raw.order !== 'row-major' || !Array.isArray(raw.shape) || raw.shape.length !== 2) {
+    throw new Error(`tiles/index.json: height_raw must be <f4, row-major, shape [H, W]; got ${JSON.stringify(raw)}`);
+  }
+  const [rows, cols] = raw.shape;
+  const reader = createHeightRows({ url: resolveTilesUrl(indexUrl, raw.path), rows, cols });
+  const pixelSizeUm = Number(index.pixel_size_um);
+  async function onSurface(points) {
+    return Promise.all(
+      points.map(async (p) => {
+        const c = (p[0] * 1000) / pixelSizeUm;
+        const r = (p[1] * 1000) / pixelSizeUm;
+        const r0 = Math.max(0, Math.min(rows - 2, Math.floor(r)));
+        const two = await reader.readRows(r0, r0 + 2);
+        const h = bilinearHeight(two, cols, Math.min(2, rows - r0), c, r - r0);
+        return Number.isFinite(h) ? [p[0], p[1], -h / 1000] : [...p];
+      }),
+    );
+  }
+  return { reader, pixelSizeUm, onSurface };
+}
+
+/**
+ * The LRU cache's limits for a budget. The renderer stops requesting tiles once its cache is
+ * "full" (maxBytesSize) but lets the downloads already in flight land, and never evicts tiles
+ * in use; so the cache is told 75 % of the budget and at most MAX_IN_FLIGHT downloads run at
+ * once, keeping the remaining quarter for what lands after the cache filled.
+ */
+const SOFT_FRACTION = 0.75;
+const MAX_IN_FLIGHT = 6;
+
 function setBudget(tiles, mb) {
   const bytes = mb * 1024 * 1024;
-  // Unused tiles are unloaded down to 80 % of the budget; the cache never grows past it.
-  tiles.lruCache.maxBytesSize = bytes;
-  tiles.lruCache.minBytesSize = 0.8 * bytes;
+  tiles.lruCache.maxBytesSize = SOFT_FRACTION * bytes;
+  tiles.lruCache.minBytesSize = 0.6 * bytes; // unused tiles are unloaded down to this
+  tiles.budgetBytes = bytes;
+  // The renderer's default queue and cache are shared module objects; the viewer shows one
+  // tiled model at a time, so setting them here is setting them for that model.
+  tiles.downloadQueue.maxJobsPerOrigin = MAX_IN_FLIGHT;
 }
 
 function abortable(promise, signal, onAbort) {

@@ -27,8 +27,8 @@ export function tileOptionsFromSearch(search) {
   const budget = q.get('tile_budget_mb');
   if (budget !== null) {
     const mb = Number(budget);
-    if (mb >= 16 && mb <= MAX_BUDGET_MB) options.budgetMb = mb;
-    else ignored.push(`tile_budget_mb=${budget} (16 to ${MAX_BUDGET_MB})`);
+    if (mb >= 1 && mb <= MAX_BUDGET_MB) options.budgetMb = mb;
+    else ignored.push(`tile_budget_mb=${budget} (1 to ${MAX_BUDGET_MB})`);
   }
   const error = q.get('tile_error_px');
   if (error !== null) {

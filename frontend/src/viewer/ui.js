@@ -94,7 +94,10 @@ export function bindViewerUi(viewer, context) {
     context.measureChanged?.();
     return kind === 'profile' ? showProfile(points) : showDistance(points);
   }
-  function showDistance(points) {
+  async function showDistance(points) {
+    // A streamed model: the picked points on the full-resolution heights (tiles.js).
+    const streamed = viewer.model?.tiles?.heights;
+    if (streamed) points = await streamed.onSurface(points).catch(() => points);
     const d = distanceMm(points[0], points[1]);
     setReadout(`Distance: ${d.toFixed(2)} mm`);
     $('readout').dataset.distanceMm = String(d);
@@ -117,8 +120,15 @@ export function bindViewerUi(viewer, context) {
   }
   async function showProfile(points) {
     try {
-      const grid = await loadHeightGrid();
-      lastProfile = sampleProfile(grid, points[0], points[1]);
+      const streamed = viewer.model?.tiles?.heights; // only the rows the line touches
+      if (streamed) {
+        setReadout('Reading heights…');
+        const part = await streamed.reader.gridForSegment(points[0], points[1], streamed.pixelSizeUm);
+        lastProfile = sampleProfile(part.grid, part.start, part.end);
+        heightGrid = { url: null, grid: { pixelSizeUm: streamed.pixelSizeUm } };
+      } else {
+        lastProfile = sampleProfile(await loadHeightGrid(), points[0], points[1]);
+      }
       const chart = $('profile-chart');
       chart.replaceChildren(profileChart(lastProfile));
       $('profile-panel').hidden = false;
