@@ -63,7 +63,11 @@ export function pickPoint(canvas, camera, object, clientX, clientY) {
   const targets = object.isMesh ? [object] : object.children;
   const hit = raycaster.intersectObjects(targets, !object.isMesh).find((h) => materialOf(h)?.visible !== false);
   if (!hit) return null;
-  return { point: hit.point.toArray(), uv: hit.uv ? hit.uv.toArray() : null };
+  const out = { point: hit.point.toArray(), uv: hit.uv ? hit.uv.toArray() : null };
+  // The mesh hit (a tile of a streamed model says which: tiles.js `describeTile`), kept out of
+  // JSON and structured clones.
+  Object.defineProperty(out, 'object', { value: hit.object, enumerable: false });
+  return out;
 }
 
 /** Page (CSS pixel) position of a world point (mm). */

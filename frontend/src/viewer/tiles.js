@@ -336,9 +336,18 @@ export async function openTiledModel({
         idle: s.queued + s.downloading + s.parsing === 0,
       };
     },
-    /** The tile drawn at a picked object (raycast hit's object): its dh_tile, or null. */
-    tileAt(object) {
-      return object?.material?.userData?.tile ?? null;
+    /**
+     * The tile a picked object (viewer.pick(x, y).object) belongs to: its dh_tile, whether it
+     * is a leaf, its screen-space error at the last update and whether that is within the
+     * target (`sufficient`: the renderer wants nothing finer there), or null.
+     */
+    describeTile(object) {
+      const tile = object?.userData?.tile;
+      if (!tile) return null;
+      const info = object.material?.userData?.tile ?? tileInfo(tile, object);
+      const leaf = !tile.children?.length || tile.geometricError === 0;
+      const error = tile.traversal?.error ?? Infinity;
+      return { ...(info ?? {}), leaf, error, sufficient: leaf || error <= tiles.errorTarget };
     },
     /** Whether the material is one of this model's tile materials. */
     has(material) {
