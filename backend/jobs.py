@@ -530,6 +530,31 @@ def next_version(session: Session, *, tablet_id: int, face: str | None) -> int:
     return (session.scalar(query) or 0) + 1
 
 
+# The tiles of a model (worker/tiles; thousands of files) are recorded once: the model's
+# assets list tiles/index.json and tiles/files.json (every tile's size and SHA-256); the
+# asset route finds the other names under tiles/ in files.json.
+TILES_PREFIX = "tiles/"
+TILES_RECORDED = ("index.json", "files.json")
+
+
+def recorded_assets(assets: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """The asset entries kept in the model row: all but the files inside a tiles/ folder
+    (``tiles/`` or ``faces/<label>/tiles/``), whose index and file list only are kept."""
+    return {
+        name: info
+        for name, info in assets.items()
+        if tiles_part(name) is None or tiles_part(name) in TILES_RECORDED
+    }
+
+
+def tiles_part(name: str) -> str | None:
+    """The name inside its tiles/ folder, or None when it is not in one."""
+    head, sep, rest = name.partition(TILES_PREFIX)
+    if not sep or (head and not head.endswith("/")):
+        return None
+    return rest
+
+
 def mark_succeeded(
     session: Session,
     *,
@@ -565,9 +590,12 @@ def mark_succeeded(
     prefix = f"models/{job.tablet_id}/{face or 'tablet'}/v{version}-{uuid.uuid4().hex[:12]}"
     stats = storage.put_tree(prefix, model_dir)
     try:
-        assets = {
-            s.key[len(prefix) + 1 :]: {"size_bytes": s.size_bytes, "sha256": s.etag} for s in stats
-        }
+        assets = recorded_assets(
+            {
+                s.key[len(prefix) + 1 :]: {"size_bytes": s.size_bytes, "sha256": s.etag}
+                for s in stats
+            }
+        )
         model = Model(
             scan_id=job.scan_id,
             tablet_id=job.tablet_id,

@@ -1,8 +1,8 @@
 """Thin Celery tasks: job ids in, the job row out (state, progress, timings, model).
 
 - ``worker.tasks.reconstruct_scan(job_id)``: fetch the scan's bundle from storage,
-  ``worker.pipeline.reconstruct_bundle``, derive the viewer's assets (``worker.assets``), store
-  the model directory and its row (``backend.jobs.mark_succeeded``: files + row together).
+  ``worker.pipeline.reconstruct_bundle``, derive the viewer's assets (``worker.assets``), build
+  the tiles for streaming (``worker.tiles``), store the model directory and its row (``backend.jobs.mark_succeeded``: files + row together).
 - ``worker.tasks.derive_assets(job_id)``: (re)derive the assets of the latest model of the
   job's scan, e.g. for models made before an asset existed.
 - ``worker.tasks.register_tablet(job_id)``: register a tablet's faces with
@@ -52,6 +52,8 @@ from worker import celery_app as capp
 from worker.assets import AssetError
 from worker.assets import derive_assets as write_derived_assets
 from worker.celery_app import app
+from worker.photos import write_photo_assets
+from worker.tiles import TileError, build_tiles
 
 log = logging.getLogger("worker.tasks")
 
@@ -234,6 +236,14 @@ def _reconstruct(beat: _Beat, job: Job) -> str:
         beat.progress("assets", 0.86, force=True)
         write_derived_assets(model_dir)
         timings["assets"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        beat.progress("photos", 0.87, force=True)
+        _photos(job.id, bundle, model_dir)
+        timings["photos"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        beat.progress("tiles", 0.88, force=True)
+        _build_tiles(model_dir, lambda stage, f: beat.progress("tiles", 0.88 + 0.04 * f))
+        timings["tiles"] = time.perf_counter() - t0
         beat.timings(timings, "store", 0.92)
 
         if beat.lost.is_set():
@@ -244,6 +254,27 @@ def _reconstruct(beat: _Beat, job: Job) -> str:
         return "succeeded"
     finally:
         shutil.rmtree(work, ignore_errors=True)
+
+
+def _photos(job_id: int, bundle: Path, model_dir: Path) -> None:
+    """The photo stack and gloss (worker.photos): an addition to the model, so a failure
+    there leaves the model without them (and says so in the log), never half of them."""
+    try:
+        write_photo_assets(bundle, model_dir)
+    except Exception:
+        log.exception("job %s: photo stack and gloss not written", job_id)
+        shutil.rmtree(model_dir / "photos", ignore_errors=True)
+        for name in ("gloss.png", "gloss.json"):
+            (model_dir / name).unlink(missing_ok=True)
+
+
+def _build_tiles(model_dir: Path, progress: Callable[[str, float], None]) -> None:
+    """The model's tiles for streaming (worker.tiles). A model that cannot be tiled (a
+    TileError names why) is still stored: the viewer falls back to model.glb."""
+    try:
+        build_tiles(model_dir, progress=progress)
+    except TileError as exc:
+        log.warning("%s: no tiles: %s", model_dir, exc)
 
 
 def _store(job_id: int, model_dir: Path, storage) -> int:

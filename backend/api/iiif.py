@@ -119,6 +119,14 @@ def _inputs(session: Session, settings, tablet: Tablet):
                 width_px=width,
                 height_px=height,
                 pixel_size_um=pixel,
+                tile_services=(
+                    {
+                        layer: f"{urls['api']}/models/{model.id}/assets/tiles/iiif/{layer}"
+                        for layer in ("albedo", "normals", "height")
+                    }
+                    if "tiles/index.json" in (model.assets or {})
+                    else {}
+                ),
             )
         )
     licence = licences.effective(tablet)

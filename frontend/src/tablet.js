@@ -6,6 +6,7 @@ import * as api from './api.js';
 import { el, formatDate, showError } from './dom.js';
 import { bindViewerUi } from './viewer/ui.js';
 import { bindCite } from './viewer/citeUi.js';
+import { bindPhotoPanel } from './viewer/photos.js';
 import { decodeViewState, encodeViewState } from './viewer/permalink.js';
 import { tileOptionsFromSearch } from './viewer/tilesIndex.js';
 import { createViewer } from './viewer/viewer.js';
@@ -40,9 +41,11 @@ let hashTimer = null;
 let restoring = decodeViewState(window.location.hash);
 
 let ui = null; // bound below; the viewer reports changes while it is being created
+let photos = null;
 const viewer = createViewer($('viewer'), {
   onChange: () => {
     ui?.changed();
+    photos?.changed();
     if (currentModel) scheduleHash();
   },
 });
@@ -53,6 +56,18 @@ ui = bindViewerUi(viewer, {
   face: () => currentModel?.report?.scan?.face ?? null,
   describe: describeShown,
   measureChanged: () => currentModel && scheduleHash(),
+});
+photos = bindPhotoPanel(viewer, {
+  controls: $('photo-controls'),
+  show: $('photo-show'),
+  swipe: $('photo-swipe'),
+  swipeAt: $('photo-swipe-at'),
+  useLight: $('photo-use-light'),
+  panel: $('photo-panel'),
+  img: $('photo-img'),
+  caption: $('photo-caption'),
+  layer: $('photo-layer'),
+  layerImg: $('photo-layer-img'),
 });
 bindCite({
   getAbout: () => {
@@ -230,6 +245,8 @@ async function showModel(modelId) {
     });
     if (signal.aborted) return;
     currentModel = model;
+    // The photographs are an extra: the page works without them.
+    photos.setModel(model, api.assetHref).catch((err) => console.warn('photographs not shown:', err));
     // Simulated data must never pass for a measurement of the catalogued tablet.
     $('simulated-badge').hidden = !model.simulated;
     $('model-select').value = String(model.id);

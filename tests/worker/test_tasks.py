@@ -76,7 +76,7 @@ def test_reconstruction_job_stores_one_model_with_assets_and_redelivery_is_a_no_
     assert tasks.reconstruct_scan.apply(args=[job_id]).get() == "succeeded"
     job = _row(job_id)
     assert job.state == JobState.succeeded and job.progress == 1.0 and job.attempts == 1
-    assert {"fetch", "reconstruct", "assets", "reconstruct.total"} <= set(job.timings)
+    assert {"fetch", "reconstruct", "assets", "photos", "reconstruct.total"} <= set(job.timings)
     with capp.session_factory()() as session:
         model = session.get(Model, job.model_id)
     for name in (
@@ -88,8 +88,11 @@ def test_reconstruction_job_stores_one_model_with_assets_and_redelivery_is_a_no_
         "normals.png",
         "shading.json",
         "report.json",
+        "photos/index.json",
+        "gloss.json",
     ):
         assert name in model.assets, name
+    assert sum(n.startswith("photos/") and n.endswith(".jpg") for n in model.assets) >= 3
     assert model.version == 1 and model.report["quality"]["tablet_pixels"] > 0
     # The same message delivered again (acks_late after a crash before the ack).
     assert tasks.reconstruct_scan.apply(args=[job_id]).get() == "succeeded"

@@ -32,6 +32,8 @@ export function classifyAssets(assets) {
     quality: find(/(^|\/)quality[^/]*\.(npy|png)$|^quality\/[^/]+\.(npy|png)$/),
     height: find(/(^|\/)height\.npy$/)[0] ?? null,
     thumbnail: find(/(^|\/)thumbnail\.png$/)[0] ?? null,
+    gloss: find(/^gloss\.png$/)[0] ?? null,
+    glossInfo: find(/^gloss\.json$/)[0] ?? null,
   };
 }
 
@@ -260,6 +262,7 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
     curvature: null,
     accessibility: null,
     quality: null,
+    gloss: null, // {texture, scale, exponent}: the scan's measured gloss (worker/photos.py)
   };
   const created = [];
   const track = (t) => {
@@ -302,6 +305,17 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
       disposeTexture(glbAlbedo);
     } else {
       out.albedo = track(glbAlbedo); // the GLB's baseColorTexture is the same albedo
+    }
+    if (names.gloss && names.glossInfo) {
+      const [pngBuf, infoBuf] = await Promise.all([get(names.gloss), get(names.glossInfo)]);
+      const info = JSON.parse(new TextDecoder().decode(infoBuf));
+      if (Number(info.strength_scale) > 0 && Number(info.exponent) > 0) {
+        out.gloss = {
+          texture: track(await bytesToTexture(pngBuf, { srgb: false })),
+          scale: Number(info.strength_scale),
+          exponent: Number(info.exponent),
+        };
+      }
     }
   } catch (err) {
     out.dispose();

@@ -60,6 +60,10 @@ const fragmentShader = /* glsl */ `
   uniform float uIntensity;
   uniform float uAmbient;
   uniform float uGloss;
+  uniform sampler2D uGlossMap;    // measured specular strength (red), worker/photos.py
+  uniform bool uHasGlossMap;
+  uniform float uGlossScale;      // k_s of red = 1
+  uniform float uGlossExponent;   // the scan's Blinn-Phong sharpness
   uniform float uEmphasis;
   uniform vec2 uHeightRange;
   uniform vec3 uClay;
@@ -123,6 +127,18 @@ const fragmentShader = /* glsl */ `
     return base * (uAmbient + uIntensity * diffuse) + vec3(uGloss * uIntensity * spec);
   }
 
+  // The scan's own gloss (worker/photos.py): k_s·max(0, n·h)^alpha, k_s per pixel relative to
+  // a white diffuser, the same units as the albedo term, so a burnished surface shines where
+  // the photographs showed it shine.
+  vec3 measuredGloss(vec3 n) {
+    if (!uHasGlossMap) return vec3(0.0);
+    vec3 l = normalize(uLightDir);
+    vec3 v = uOrtho ? normalize(uViewDirOrtho) : normalize(cameraPosition - vPosW);
+    if (dot(n, l) <= 0.0) return vec3(0.0);
+    float ks = texture(uGlossMap, vUv).r * uGlossScale;
+    return vec3(ks * uIntensity * pow(max(dot(n, normalize(l + v)), 0.0), uGlossExponent));
+  }
+
   void main() {
     if (uSeamDepthMm > 0.0 && uHasNormalMap) seamDepth(texture(uNormalMap, vUv).a);
     else gl_FragDepth = gl_FragCoord.z;
@@ -132,7 +148,7 @@ const fragmentShader = /* glsl */ `
     vec3 colour;
     if (uMode == 0) {          // natural colour
       vec3 albedo = uHasAlbedo ? texture(uAlbedoMap, vUv).rgb : uClay;
-      colour = lit(albedo, n);
+      colour = lit(albedo, n) + measuredGloss(n);
     } else if (uMode == 1) {   // plain clay
       colour = lit(uClay, n);
     } else if (uMode == 2) {   // signed mean curvature, 8-bit grey 128 = 0
@@ -211,6 +227,10 @@ export function createRelightMaterial() {
       uIntensity: { value: 1 },
       uAmbient: { value: 0.15 },
       uGloss: { value: 0 },
+      uGlossMap: { value: blank },
+      uHasGlossMap: { value: false },
+      uGlossScale: { value: 0 },
+      uGlossExponent: { value: 32 },
       uEmphasis: { value: 2 },
       uHeightRange: { value: new THREE.Vector2(0, 1) },
       uClay: { value: new THREE.Vector3(CLAY_LINEAR.r, CLAY_LINEAR.g, CLAY_LINEAR.b) },
@@ -236,6 +256,7 @@ export const PART_UNIFORMS = Object.freeze([
   'uHasTexture',
   'uTexelSize',
   'uSeamDepthMm',
+  'uHasGlossMap',
 ]);
 
 /**
@@ -263,6 +284,7 @@ export function createPartMaterial(base, face, { seamDepthMm }) {
   const img = face.normals?.image ?? face.albedo?.image;
   uniforms.uTexelSize.value.set(img ? 1 / img.width : 1, img ? 1 / img.height : 1);
   uniforms.uSeamDepthMm.value = seamDepthMm;
+  uniforms.uHasGlossMap.value = false; // a whole tablet's faces carry no measured gloss yet
   return new THREE.ShaderMaterial({
     name: 'RelightPartMaterial',
     glslVersion: THREE.GLSL3,

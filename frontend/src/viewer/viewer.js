@@ -405,6 +405,10 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     u.uHasNormalMap.value = Boolean(loaded.normals);
     u.uAlbedoMap.value = loaded.albedo ?? material.userData.blank;
     u.uHasAlbedo.value = Boolean(loaded.albedo);
+    u.uGlossMap.value = loaded.gloss?.texture ?? material.userData.blank;
+    u.uHasGlossMap.value = Boolean(loaded.gloss);
+    u.uGlossScale.value = loaded.gloss?.scale ?? 0;
+    u.uGlossExponent.value = loaded.gloss?.exponent ?? 32;
     const img = loaded.normals?.image ?? loaded.albedo?.image;
     if (img) u.uTexelSize.value.set(1 / img.width, 1 / img.height);
     u.uHeightRange.value.set(-bb.max.z, -bb.min.z);
@@ -446,9 +450,10 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     clearOverlay();
     const u = material.uniforms;
     const blank = material.userData.blank;
-    for (const key of ['uNormalMap', 'uAlbedoMap', 'uCurvatureMap', 'uAccessMap', 'uQualityMap']) {
+    for (const key of ['uNormalMap', 'uAlbedoMap', 'uCurvatureMap', 'uAccessMap', 'uQualityMap', 'uGlossMap']) {
       u[key].value = blank;
     }
+    u.uHasGlossMap.value = false;
     model = null;
     invalidate();
   }
@@ -486,6 +491,11 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
   /** The model point under a page (CSS pixel) position: {point (mm), uv} or null. */
   function pick(clientX, clientY) {
     return model ? pickPoint(canvas, camera, model.mesh, clientX, clientY) : null;
+  }
+
+  /** The light's unit direction in the world frame (a face model's scan frame). */
+  function lightWorld() {
+    return material.uniforms.uLightDir.value.toArray();
   }
 
   /** Page (CSS pixel) position of a point in mm. */
@@ -649,6 +659,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     orbitBy,
     resetView: () => setView('obverse'),
     getState,
+    lightWorld,
     setState,
     pick,
     project,
