@@ -6,16 +6,16 @@
  * A model directory with tiles has `tiles/index.json` (docs/tiles.md, the contract between the
  * worker and this module). The renderer loads the root first (a coarse model on screen at once),
  * then refines by screen-space error where the camera looks: a tile is replaced by its children
- * while geometricError / (size of a screen pixel at the tile) > errorTarget (3D Tiles 1.1,
- * §"Geometric error"); with `errorTarget` 1 px the finest level (pixel_step 1: full-resolution
- * normals) is reached when an image pixel covers a screen pixel or more. Tiles no longer in use
- * are kept in an LRU cache bounded in bytes (`budgetBytes`) and disposed beyond it.
+ * while geometricError / (size of a screen pixel at the tile) > the renderer's target (3D Tiles
+ * 1.1, §"Geometric error"). The viewer's target is a texel size on screen (`errorTarget` px,
+ * turned into geometric error by `errorPerTexel`): with 1 px the finest level (pixel_step 1,
+ * full-resolution normals) is reached when an image pixel covers a screen pixel or more. Tiles
+ * no longer in use are kept in an LRU cache bounded in bytes (the budget) and disposed beyond.
  *
- * Frames: tile meshes hold scan-frame millimetres (as model.glb's mesh does); the tileset's
- * root.transform and the renderer's glTF up-axis rotation take them to the tileset frame
- * (glTF/3D Tiles metres). The renderer's group carries the inverse, so the viewer's world stays
- * the scan frame in millimetres and geometric errors stay in the tileset's metres (the renderer
- * measures them in its group's local frame).
+ * Frames: tile meshes hold scan-frame millimetres (as model.glb's mesh does) and the tileset's
+ * root.transform takes them to glTF metres (docs/tiles.md). The renderer's group carries the
+ * inverse, so the viewer's world stays the scan frame in millimetres and geometric errors stay
+ * in the tileset's metres (the renderer measures them in its group's local frame).
  */
 import * as THREE from 'three';
 import { TilesRenderer } from '3d-tiles-renderer/three';
@@ -27,7 +27,7 @@ import { bilinearHeight } from './profile.js';
 
 /** Default GPU memory budget of the tile cache (bytes). */
 export const DEFAULT_BUDGET_MB = 256;
-/** Screen-space error (CSS px) above which a tile is refined. */
+/** Size on screen (CSS px) of a texel of the tiles' maps above which a tile is refined. */
 export const DEFAULT_ERROR_TARGET_PX = 1;
 
 export { tilesIndexUrl } from './tilesIndex.js';
@@ -232,15 +232,14 @@ export async function openTiledModel({
   tiles.update();
   await abortable(rootLoaded, signal, () => tiles.dispose());
 
-  // Undo the tileset frame: group = (root.transform · up-axis rotation)⁻¹ (module comment).
-  const up = new THREE.Matrix4();
-  const upAxis = tiles.rootTileset?.asset?.gltfUpAxis ?? 'y';
-  if (/^y$/i.test(upAxis)) up.makeRotationAxis(new THREE.Vector3(1, 0, 0), Math.PI / 2);
-  else if (/^x$/i.test(upAxis)) up.makeRotationAxis(new THREE.Vector3(0, 1, 0), -Math.PI / 2);
+  // Undo the tileset frame: the GLBs hold scan-frame mm under a node that cancels the
+  // renderer's y-up → z-up rotation, so the root's transform applies to scan coordinates
+  // (docs/tiles.md); the group carries its inverse and the world is the scan frame (a face)
+  // or the tablet frame (a whole tablet: each face's tileset adds its scan → tablet transform).
   const rootTransform = new THREE.Matrix4();
   if (Array.isArray(tiles.root?.transform)) rootTransform.fromArray(tiles.root.transform);
   tiles.group.matrixAutoUpdate = false;
-  tiles.group.matrix.multiplyMatrices(rootTransform, up).invert();
+  tiles.group.matrix.copy(rootTransform).invert();
   tiles.group.updateMatrixWorld(true);
 
   const worldPerTilesetUnit = new THREE.Vector3().setFromMatrixScale(tiles.group.matrix).x;
@@ -293,7 +292,8 @@ export async function openTiledModel({
       // 3d-tiles-renderer 0.5.3 measures an orthographic camera's pixel in WORLD units (mm
       // here) but geometric errors in its group's frame (the tileset's metres), while the
       // perspective path converts; scale the target so both compare like with like.
-      tiles.errorTarget = camera.isOrthographicCamera ? errorTarget / worldPerTilesetUnit : errorTarget;
+      const target = errorTarget * errorPerTexel(tiles, index);
+      tiles.errorTarget = camera.isOrthographicCamera ? target / worldPerTilesetUnit : target;
       tiles.update();
     },
     /** Apply a shading state ({mode, curvatureScale}) to every tile, now and on load. */
@@ -360,6 +360,29 @@ export async function openTiledModel({
       materials.clear();
     },
   };
+}
+
+/**
+ * Geometric error per texel of the tiles' textures: the worker gives each tile the spacing of
+ * its mesh as geometricError (docs/tiles.md: 4 texels), while what must stay under a screen
+ * pixel is a texel of the normal map. The viewer's error target is in texels on screen, so
+ * the renderer's target is that times this ratio: geometricError / (pixel_step · pixel size),
+ * read from the first tile that carries dh_tile (the root of a face; a face's root under a
+ * whole tablet's), 1 until one is known.
+ */
+function errorPerTexel(tiles, index) {
+  if (tiles.dhErrorPerTexel) return tiles.dhErrorPerTexel;
+  const stack = tiles.root ? [tiles.root] : [];
+  for (let n = 0; stack.length && n < 64; n++) {
+    const t = stack.shift();
+    const info = t.extras?.dh_tile;
+    if (info?.pixel_step > 0 && t.geometricError > 0) {
+      tiles.dhErrorPerTexel = t.geometricError / (info.pixel_step * index.pixel_size_um * 1e-6);
+      return tiles.dhErrorPerTexel;
+    }
+    stack.push(...(t.children ?? []));
+  }
+  return 1;
 }
 
 /**
