@@ -219,6 +219,8 @@ def main() -> None:
         model_dir = Path(path)
         if not (model_dir / "model.glb").is_file() and not (model_dir / "tiles").is_dir():
             parser.error(f"{path}: not a model directory (no model.glb, no tiles/)")
+        if label in {lb for lb, _ in models}:
+            parser.error(f"{label}: each --model needs its own label")
         models.append((label, model_dir))
 
     server = _server_module()

@@ -40,10 +40,18 @@ export function validateIndex(index) {
   const where = 'tiles/index.json';
   if (!index || typeof index !== 'object') throw new Error(`${where}: not a JSON object`);
   if (index.version !== 1) throw new Error(`${where}: version ${index.version} is not supported (expected 1)`);
+  if (typeof index.tileset !== 'string' || !index.tileset) throw new Error(`${where}: tileset must name tileset.json`);
+  if (index.faces !== undefined) {
+    // A whole tablet: its faces' own index.json files carry the image grids.
+    const faces = Object.values(index.faces ?? {});
+    if (!faces.length || !faces.every((f) => typeof f === 'string' && f)) {
+      throw new Error(`${where}: faces must map each face to its index.json`);
+    }
+    return index;
+  }
   for (const k of ['width_px', 'height_px', 'pixel_size_um']) {
     if (!(Number(index[k]) > 0)) throw new Error(`${where}: ${k} must be a positive number, got ${index[k]}`);
   }
-  if (typeof index.tileset !== 'string' || !index.tileset) throw new Error(`${where}: tileset must name tileset.json`);
   return index;
 }
 
@@ -139,6 +147,15 @@ export async function openTiledModel({
   if (!response.ok) throw new Error(`${indexUrl}: HTTP ${response.status}`);
   const index = validateIndex(await response.json());
   const tilesetUrl = resolveTilesUrl(indexUrl, index.tileset);
+  const kind = index.faces ? 'tablet' : 'face';
+  let pixelSizeUm = Number(index.pixel_size_um);
+  if (kind === 'tablet') {
+    // The faces of one tablet are scanned with one pixel size; the first face's index says it.
+    const faceUrl = resolveTilesUrl(indexUrl, Object.values(index.faces)[0]);
+    const r = await fetch(faceUrl, { signal, credentials: 'same-origin' });
+    if (!r.ok) throw new Error(`${faceUrl}: HTTP ${r.status}`);
+    pixelSizeUm = Number(validateIndex(await r.json()).pixel_size_um);
+  }
 
   const tiles = new TilesRenderer(tilesetUrl);
   tiles.fetchOptions = { credentials: 'same-origin' };
@@ -247,15 +264,16 @@ export async function openTiledModel({
   const box = new THREE.Box3();
   if (!tiles.getBoundingBox(box)) {
     // No bounding volume usable as a box: the image grid (x, y) and a nominal depth.
-    const w = (index.width_px * index.pixel_size_um) / 1000;
-    const h = (index.height_px * index.pixel_size_um) / 1000;
+    const w = ((index.width_px ?? 1000) * pixelSizeUm) / 1000;
+    const h = ((index.height_px ?? 1000) * pixelSizeUm) / 1000;
     box.set(new THREE.Vector3(0, 0, -w / 4), new THREE.Vector3(w, h, 0));
   } else {
     box.applyMatrix4(tiles.group.matrix);
   }
   const sphere = box.getBoundingSphere(new THREE.Sphere());
 
-  const heights = index.height_raw ? streamedHeights(index, indexUrl) : null;
+  // A whole tablet's heights are per face, each on its own grid: not read here (yet).
+  const heights = kind === 'face' && index.height_raw ? streamedHeights(index, indexUrl) : null;
   let cameraInUse = null;
   let disposed = false;
 
@@ -271,6 +289,8 @@ export async function openTiledModel({
 
   return {
     index,
+    /** 'face' (one scan's image grid) or 'tablet' (a whole tablet's faces, external tilesets). */
+    kind,
     tiles,
     /** The Object3D to add to the scene. */
     object: tiles.group,
@@ -292,7 +312,7 @@ export async function openTiledModel({
       // 3d-tiles-renderer 0.5.3 measures an orthographic camera's pixel in WORLD units (mm
       // here) but geometric errors in its group's frame (the tileset's metres), while the
       // perspective path converts; scale the target so both compare like with like.
-      const target = errorTarget * errorPerTexel(tiles, index);
+      const target = errorTarget * errorPerTexel(tiles, pixelSizeUm);
       tiles.errorTarget = camera.isOrthographicCamera ? target / worldPerTilesetUnit : target;
       tiles.update();
     },
@@ -370,14 +390,14 @@ export async function openTiledModel({
  * read from the first tile that carries dh_tile (the root of a face; a face's root under a
  * whole tablet's), 1 until one is known.
  */
-function errorPerTexel(tiles, index) {
+function errorPerTexel(tiles, pixelSizeUm) {
   if (tiles.dhErrorPerTexel) return tiles.dhErrorPerTexel;
   const stack = tiles.root ? [tiles.root] : [];
   for (let n = 0; stack.length && n < 64; n++) {
     const t = stack.shift();
     const info = t.extras?.dh_tile;
     if (info?.pixel_step > 0 && t.geometricError > 0) {
-      tiles.dhErrorPerTexel = t.geometricError / (info.pixel_step * index.pixel_size_um * 1e-6);
+      tiles.dhErrorPerTexel = t.geometricError / (info.pixel_step * pixelSizeUm * 1e-6);
       return tiles.dhErrorPerTexel;
     }
     stack.push(...(t.children ?? []));

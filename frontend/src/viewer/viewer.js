@@ -433,7 +433,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     }
     unloadModel();
     scene.add(tiled.object);
-    const views = availableViews('face');
+    const views = availableViews(tiled.kind);
     model = { mesh: tiled.object, tiles: tiled, assets: tiledAssets(tiled), box: tiled.box, radius: tiled.radius, errors: {}, parts: null, partMaterials: [], views };
     material.uniforms.uHeightRange.value.set(-tiled.box.max[2], -tiled.box.min[2]);
     setShading({});

@@ -248,3 +248,67 @@ def test_profile_reads_only_the_rows_it_touches(tiled_page, tiled, tools):
     np.testing.assert_allclose(got, height[r0 : r0 + 2], rtol=1e-6, equal_nan=True)
     page.keyboard.press("Escape")
     assert not errors, errors
+
+
+@pytest.fixture(scope="module")
+def tiled_tablet(library, tmp_path_factory):
+    """A whole tablet of two procedural faces (worker.tiles.tablet): the obverse as scanned,
+    the reverse turned 180° about the vertical axis and 12 mm behind it."""
+    from worker.tiles.tablet import build_tablet_tiles
+
+    tmp = tmp_path_factory.mktemp("tiled_tablet")
+    faces = {}
+    for k, name in enumerate(("obverse", "reverse")):
+        d = tmp / name
+        report = write_large_face(d, width_px=768, height_px=512, seed=11 + k)
+        faces[name] = d
+    w_mm = 768 * report["pixel_size_um"] / 1000
+    turn = np.diag([-1.0, 1.0, -1.0, 1.0])  # 180° about y: x → w − x, z → 12 mm − z
+    turn[0, 3], turn[2, 3] = w_mm, 12.0
+    model_dir = tmp / "tablet"
+    model_dir.mkdir()
+    (model_dir / "model.glb").write_bytes((faces["obverse"] / "model.glb").read_bytes())
+    (model_dir / "report.json").write_text('{"scans": ["obverse", "reverse"]}')
+    build_tablet_tiles(
+        model_dir,
+        {"faces/obverse": (faces["obverse"], np.eye(4)), "faces/reverse": (faces["reverse"], turn)},
+    )
+    model_id = library.add_tablet_model("P999003", model_dir)
+    return SimpleNamespace(id=model_id, w_mm=w_mm)
+
+
+def test_a_whole_tablet_streams_face_by_face(browser, library, tiled_tablet):
+    """Both faces' tilesets (external tilesets under the tablet's root) stream, each in its
+    place in the tablet frame: the obverse seen from the front, the reverse from behind."""
+    context = browser.new_context(viewport=VIEWPORT)
+    page = context.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    try:
+        tablet_id = library.tablets["P999003"]
+        page.goto(f"{library.url}/tablet.html?id={tablet_id}#m={tiled_tablet.id}")
+        page.wait_for_function(
+            "() => document.getElementById('viewer').dataset.loaded", timeout=60000
+        )
+        assert "reverse" in page.evaluate("() => window.hammurabi.viewer.views")
+        hits = {}
+        for view in ("obverse", "reverse"):
+            page.evaluate("v => window.hammurabi.viewer.setView(v)", view)
+            s = wait_streamed(page)
+            assert s["visibleTiles"] >= 1, s
+            hits[view] = (
+                tile_under_centre(page),
+                page.evaluate(
+                    """() => { const c = document.getElementById('viewer').getBoundingClientRect();
+                  const hit = window.hammurabi.viewer.pick(c.x + c.width / 2, c.y + c.height / 2);
+                  return hit && hit.point; }"""
+                ),
+            )
+        # the obverse's surface faces −z (heights toward the camera: z ≤ 0); the reverse's
+        # lies beyond the 12 mm turn
+        assert hits["obverse"][1] is not None and hits["obverse"][1][2] < 1.0, hits
+        assert hits["reverse"][1] is not None and hits["reverse"][1][2] > 8.0, hits
+        assert all(h[0] is not None for h in hits.values()), hits
+        assert not errors, errors
+    finally:
+        context.close()
