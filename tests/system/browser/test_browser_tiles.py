@@ -286,10 +286,13 @@ def test_a_whole_tablet_streams_face_by_face(browser, library, tiled_tablet):
     page.on("pageerror", lambda exc: errors.append(str(exc)))
     try:
         tablet_id = library.tablets["P999003"]
-        page.goto(f"{library.url}/tablet.html?id={tablet_id}#m={tiled_tablet.id}")
+        # an unusable setting in the link is ignored (the default budget stands) and named
+        page.goto(f"{library.url}/tablet.html?id={tablet_id}&tile_budget_mb=0#m={tiled_tablet.id}")
         page.wait_for_function(
             "() => document.getElementById('viewer').dataset.loaded", timeout=60000
         )
+        assert "tile_budget_mb=0" in page.locator("#notice").inner_text()
+        assert wait_streamed(page)["budgetBytes"] == 256 * 1024 * 1024
         assert "reverse" in page.evaluate("() => window.hammurabi.viewer.views")
         hits = {}
         for view in ("obverse", "reverse"):
