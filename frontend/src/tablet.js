@@ -10,6 +10,7 @@ import { bindCite } from './viewer/citeUi.js';
 import { bindPhotoPanel } from './viewer/photos.js';
 import { bindAnnotations } from './annotationsPanel.js';
 import { decodeViewState, encodeViewState } from './viewer/permalink.js';
+import { tileOptionsFromSearch } from './viewer/tilesIndex.js';
 import { createViewer } from './viewer/viewer.js';
 
 const $ = (id) => document.getElementById(id);
@@ -41,6 +42,7 @@ let loadController = null;
 let hashTimer = null;
 let restoring = decodeViewState(window.location.hash);
 
+const tileSettings = tileOptionsFromSearch(location.search); // ?tile_budget_mb=…&tile_error_px=…
 let ui = null; // bound below; the viewer reports changes while it is being created
 let photos = null;
 let scholar = null;
@@ -251,6 +253,7 @@ async function showModel(modelId) {
     await viewer.load({
       assets,
       signal,
+      tiles: tileSettings.options, // streamed models: GPU budget, error target
       onProgress: (fraction, label) => {
         $('progress-fill').style.width = `${Math.round(fraction * 100)}%`;
         $('progress-label').textContent = `Loading the model: ${label}`;
@@ -268,11 +271,17 @@ async function showModel(modelId) {
     restoring = null;
     // The viewer's state names the model, so that its permalink button links this version.
     viewer.setState({ model: model.id });
+    const tileIgnored = model.assets?.['tiles/index.json'] ? tileSettings.ignored : [];
     if (restore && (restore.state.model === null || restore.state.model === model.id)) {
       const { unknownParts } = viewer.setState({ ...restore.state, model: model.id });
-      const ignored = restore.ignored.concat(unknownParts.map((n) => `face ${JSON.stringify(n)} (not in this model)`));
+      const ignored = restore.ignored.concat(
+        unknownParts.map((n) => `face ${JSON.stringify(n)} (not in this model)`),
+        tileIgnored,
+      );
       if (ignored.length) ui.setLinkNotice(`Parts of the link could not be used: ${ignored.join(', ')}.`);
       if (restore.state.measure) ui.restoreMeasure(restore.state.measure);
+    } else if (tileIgnored.length) {
+      ui.setLinkNotice(`Parts of the link could not be used: ${tileIgnored.join(', ')}.`);
     }
     renderFaces(model);
     annotations.setModel(model);

@@ -97,6 +97,9 @@ export function bindViewerUi(viewer, context) {
     return kind === 'profile' ? showProfile(lastMeasure.points) : showDistance(lastMeasure.points);
   }
   async function showDistance(points) {
+    // A streamed model: the picked points on the full-resolution heights (tiles.js).
+    const streamed = viewer.model?.tiles?.heights;
+    if (streamed) points = await streamed.onSurface(points).catch(() => points);
     const d = distanceMm(points[0], points[1]);
     setReadout(`Distance: ${d.toFixed(2)} mm`);
     $('readout').dataset.distanceMm = String(d);
@@ -125,8 +128,15 @@ export function bindViewerUi(viewer, context) {
   }
   async function showProfile(points) {
     try {
-      const grid = await loadHeightGrid();
-      lastProfile = sampleProfile(grid, points[0], points[1]);
+      const streamed = viewer.model?.tiles?.heights; // only the rows the line touches
+      if (streamed) {
+        setReadout('Reading heights…');
+        const part = await streamed.reader.gridForSegment(points[0], points[1], streamed.pixelSizeUm);
+        lastProfile = sampleProfile(part.grid, part.start, part.end);
+        heightGrid = { url: null, grid: { pixelSizeUm: streamed.pixelSizeUm } };
+      } else {
+        lastProfile = sampleProfile(await loadHeightGrid(), points[0], points[1]);
+      }
       // σ_h along the line (trust.js): a band on the chart, ± in the readout and the CSV.
       const sigmaUm = await context.uncertainty?.profile(lastProfile, points).catch(() => null);
       if (sigmaUm) lastProfile.sigmaUm = sigmaUm;

@@ -24,6 +24,7 @@ import { applyHiddenParts, createPartToggles, hiddenParts } from './parts.js';
 import { availableViews, canonicalView } from './views.js';
 import { applyEnhance, defaultEnhance } from './enhance.js';
 import { TRUST_LAYERS } from './trust.js';
+import { tilesIndexUrl } from './tilesIndex.js';
 
 const PERSPECTIVE_FOV_DEG = 30;
 
@@ -120,6 +121,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     camera.getWorldDirection(u.uViewDirOrtho.value).negate();
     u.uProjection.value.copy(camera.projectionMatrix);
     if (state.light.follow) updateLightDirection();
+    model?.tiles?.update(camera, renderer); // streaming: levels by screen-space error, loads
     renderer.render(scene, camera);
   }
 
@@ -273,6 +275,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     u.uHasTrust.value = Boolean(a?.trust);
     if (a?.trust) u.uTrustMap.value = a.trust.texture;
     u.uTrustLayer.value = Math.max(0, TRUST_LAYERS.indexOf(s.trustLayer));
+    model?.tiles?.applyShading(s);
     for (const [i, m] of (model?.partMaterials ?? []).entries()) applyPartShading(m, a.faces[i], s, has);
   }
 
@@ -401,7 +404,8 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
    * @param {(fraction: number, label: string) => void} [source.onProgress]
    * @param {AbortSignal} [source.signal]
    */
-  async function load({ assets, onProgress = () => {}, signal } = {}) {
+  async function load({ assets, onProgress = () => {}, signal, tiles = {} } = {}) {
+    if (tilesIndexUrl(assets)) return loadTiled(assets, { signal, ...tiles });
     const loaded = await loadModelAssets(assets, { onProgress, signal });
     if (disposed || signal?.aborted) {
       loaded.dispose();
@@ -438,6 +442,29 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     u.uHeightRange.value.set(-bb.max.z, -bb.min.z);
     u.uObjectToWorld.value.setFromMatrix4(mesh.matrixWorld);
     setShading({}); // applies the mode and starts loading its maps
+    setView('obverse');
+    onChange('model');
+    return model;
+  }
+
+  /**
+   * A model with tiles/index.json: streamed (tiles.js) instead of the single mesh; the same
+   * material's light, mode and camera uniforms drive every tile.
+   * @param {{budgetMb?: number, errorTarget?: number}} options the tile cache's GPU budget
+   */
+  async function loadTiled(assets, { signal, budgetMb, errorTarget }) {
+    const { openTiledModel, tiledAssets } = await import('./tiles.js');
+    const tiled = await openTiledModel({ indexUrl: tilesIndexUrl(assets), baseMaterial: material, invalidate, budgetMb, errorTarget, signal });
+    if (disposed || signal?.aborted) {
+      tiled.dispose();
+      return null;
+    }
+    unloadModel();
+    scene.add(tiled.object);
+    const views = availableViews(tiled.kind);
+    model = { mesh: tiled.object, tiles: tiled, assets: tiledAssets(tiled), box: tiled.box, radius: tiled.radius, errors: {}, parts: null, partMaterials: [], views };
+    material.uniforms.uHeightRange.value.set(-tiled.box.max[2], -tiled.box.min[2]);
+    setShading({});
     setView('obverse');
     onChange('model');
     return model;
@@ -674,6 +701,11 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     return { ...renderer.info.memory };
   }
 
+  /** A streamed model's figures (tiles.js `stats`), or null for a single-mesh model. */
+  function streaming() {
+    return model?.tiles?.stats() ?? null;
+  }
+
   function dispose() {
     if (disposed) return;
     unloadModel();
@@ -714,6 +746,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     missingMessage,
     screenshot,
     memory,
+    streaming,
     whenIdle,
     invalidate,
     setEnhance,
