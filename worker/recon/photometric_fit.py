@@ -14,6 +14,7 @@ import numpy as np
 __all__ = [
     "Model",
     "cone_resolve",
+    "consistent_least_squares",
     "estimate_sigma",
     "initial_inliers",
     "mirror_trim",
@@ -646,3 +647,28 @@ def cone_resolve(model, cand, inl, b, ok, sigma, *, cone_deg=20.0, k_sigma=1.5, 
     _set_cols(inl, cols[take], _cols(inl2, take))
     b[cols[take]] = _rows(b2, take)
     return inl, b
+
+
+def consistent_least_squares(model, cand, inl, b, ok):
+    """Least squares over each pixel's lit candidates where it explains all of them: no
+    candidate beyond the inlier tolerance of that fit (|r| ≤ tolerance·(l·b) + abs_tol), and
+    none clearly lit behind its terminator. Returns (inliers, b, ok).
+
+    Under noise alone, least squares over every lit sample is the efficient estimate
+    (Gauss–Markov), and every step that drops samples on a test (trim, mirror peeling, the
+    highlight cone, the asymmetric reweighting) drops some good ones by chance: on a matte
+    ball rendered by Mitsuba under 96 lights the robust fit's mean error was 7 % above
+    least squares'. Where least squares leaves a sample outside the tolerance (a highlight,
+    a cast shadow, an interreflection) the robust fit stands. A weak lobe that stays within
+    the tolerance is then left in: on the rendered cat (mild gloss) the mean error rose from
+    3.44° to 3.60°, still below least squares' 4.11°.
+    """
+    b_ls, ok_ls = _fit(model.s, cand, model.lights32, model.ll6)
+    r, tol, front = model.residual(b_ls)
+    bad = cand & (np.abs(r) > tol)
+    bad |= cand & ~front & (r > tol)
+    take = ok_ls & ~np.any(bad, axis=0)
+    b = np.where(take[:, None], b_ls, b)
+    ok = np.where(take, ok_ls, ok)
+    inl = _select(take[None, :], cand, inl)
+    return inl, b, ok
