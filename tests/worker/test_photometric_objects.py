@@ -24,7 +24,7 @@ def rendered(tmp_path_factory):
     out = {}
     for name in ("matte_ball", "harvest"):
         folder = tmp_path_factory.mktemp(name)
-        bundle, gt = render_object_bundle(folder, name, size=SIZE, spp=8)
+        bundle, gt = render_object_bundle(folder, name, size=SIZE, spp=4)
         models = {}
         for fusion in ("plain", "default"):
             models[fusion] = folder / f"model-{fusion}"
