@@ -558,11 +558,11 @@ def _mask_products(meas: Measurements, mask: np.ndarray) -> _MaskProducts:
     if meas.residual is not None:
         quality["photometric_residual"] = np.where(mask, meas.residual, np.nan).astype(np.float32)
         quality["lights_used"] = np.where(mask, meas.lights_used, 0).astype(np.int16)
-        if meas.lights_lit is not None:
+        if meas.photometric_outliers is not None:
             # Lit samples the robust fit left out: highlights, interreflections, penumbrae.
-            quality["photometric_outliers"] = np.where(
-                mask, meas.lights_lit.astype(np.int16) - quality["lights_used"], 0
-            ).astype(np.int16)
+            quality["photometric_outliers"] = np.where(mask, meas.photometric_outliers, 0).astype(
+                np.int16
+            )
         if meas.fringe_height_um is None:
             # Photographs alone: the measured normals themselves, the product that
             # photometric stereo is judged by (normals.npy holds the integrated surface's).

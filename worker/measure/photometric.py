@@ -113,7 +113,7 @@ def measure_photometric(bundle, photo, meas, rho_ref, *, stacks=None, workers: i
     meas.albedo = res.albedo
     meas.residual = res.residual
     meas.lights_used = res.lights_used
-    meas.lights_lit = res.lights_lit
+    meas.photometric_outliers = res.outliers
     meas.photometric_polar_deg = float(np.median(polar))
     meas.used["photometric_azimuths_deg"] = sorted({angle_key(a) for a in az})
 

@@ -39,7 +39,7 @@ class Measurements:
     albedo: np.ndarray | None = None  # grey ρ relative to white (photometric, else fringes)
     residual: np.ndarray | None = None
     lights_used: np.ndarray | None = None
-    lights_lit: np.ndarray | None = None  # samples above the noise floor (outliers: − used)
+    photometric_outliers: np.ndarray | None = None  # lit samples the fit left out
     # Per pixel, a high quantile of the photometric shading over the lights
     # (`recon.ground_mask.stack_peak`): the evidence of the dark-ground mask, computed for
     # bundles without fringe heights only.

@@ -53,9 +53,9 @@ class PhotometricResult:
         misfit in units of n·l (0 for an exact fit, always 0 with exactly 3 inliers); NaN where
         not solved.
     lights_used : (H, W) int16, number of inlier lights (0 where not solved).
-    lights_lit : (H, W) int16, number of usable samples above the noise floor (3σ of the
-        shading noise): lit, though maybe by a highlight or an interreflection; minus
-        ``lights_used``, the lit samples the fit rejected as outliers.
+    outliers : (H, W) int16, number of samples the fit left out although they read above the
+        noise floor (3σ of the shading noise) in front of its terminator (n·l above
+        ``shadow_fraction``): highlights, interreflections, cast shadows' penumbrae.
     noise_sigma : float, σ of the shading noise used for the tolerances (given or estimated).
     """
 
@@ -64,7 +64,7 @@ class PhotometricResult:
     residual: np.ndarray
     lights_used: np.ndarray
     noise_sigma: float = 0.0
-    lights_lit: np.ndarray | None = None
+    outliers: np.ndarray | None = None
 
 
 def light_directions(azimuth_deg, polar_deg) -> np.ndarray:
@@ -202,7 +202,7 @@ def photometric_stereo(
     albedo = np.full(h * w, np.nan, dtype=np.float32)
     residual = np.full(h * w, np.nan, dtype=np.float32)
     used = np.zeros(h * w, dtype=np.int16)
-    lit = np.zeros(h * w, dtype=np.int16)
+    rejected = np.zeros(h * w, dtype=np.int16)
 
     if noise_sigma is None and pix.size:
         s_sub = flat[:, pix[:: max(1, pix.size // _SIGMA_SAMPLE_PIXELS)]].astype(np.float32)
@@ -246,7 +246,7 @@ def photometric_stereo(
             )
         b = asymmetric_refine(model, inl, b, ok, noise_sigma or 0.0)
         if least_squares_when_consistent:
-            inl, b, ok = consistent_least_squares(model, cand, inl, b, ok)
+            inl, b, ok = consistent_least_squares(model, cand, inl, b, ok, noise_sigma or 0.0)
         rho = _row_norms(b)
         ok &= rho > 0
         n = b / np.where(ok, rho, 1.0)[:, None]
@@ -261,7 +261,8 @@ def photometric_stereo(
         albedo[idx] = np.where(ok, rho, np.nan)
         residual[idx] = np.where(ok, res, np.nan)
         used[idx] = np.where(ok, m, 0)
-        lit[idx] = _count(valid & (s > abs_tol))
+        lit = valid & (s > abs_tol) & (pred > np.float32(shadow_fraction) * rho[None, :])
+        rejected[idx] = np.where(ok, _count(lit & ~inl), 0)
 
     # Pixels are independent: chunks run in threads (numpy releases the GIL on the arrays).
     run_blocks(solve, range(0, pix.size, chunk), workers=workers)
@@ -272,5 +273,5 @@ def photometric_stereo(
         residual=residual.reshape(h, w),
         lights_used=used.reshape(h, w),
         noise_sigma=float(noise_sigma or 0.0),
-        lights_lit=lit.reshape(h, w),
+        outliers=rejected.reshape(h, w),
     )
