@@ -72,3 +72,36 @@ def test_matte_object_is_as_good_as_least_squares_and_found_whole(rendered):
     assert report["used"]["mask"]["stood_down"] is None
     outliers = np.load(models["default"] / "quality" / "photometric_outliers.npy")
     assert outliers.shape == (SIZE, SIZE) and outliers.min() >= 0
+
+
+def test_without_a_dark_ground_every_pixel_is_kept_with_a_warning(tmp_path):
+    """A light object filling the frame (no ground to find): the mask stands down to every
+    measured pixel instead of cutting the object, and says so."""
+    from worker.bundle import write_bundle
+    from worker.recon.photometric import light_directions
+
+    size, k = 48, 12
+    az, polar = np.arange(k) * 30.0, np.full(k, 40.0)
+    yy, xx = np.mgrid[0:size, 0:size] / size
+    n = np.stack([0.3 * np.sin(6 * xx), 0.2 * np.cos(5 * yy), -np.ones_like(xx)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    shading = 0.5 * np.clip(np.einsum("hwc,kc->khw", n, light_directions(az, polar)), 0, None)
+    frames, images = [], {}
+    for i in range(k):
+        images[f"p{i}.png"] = np.rint(shading[i] * 60000).astype(np.uint16)
+        frames.append({"file": f"p{i}.png", "kind": "photometric", "azimuth_deg": float(az[i])})
+    doc = {
+        "format": "cuneiform-scan",
+        "version": 1,
+        "scan": {"face": "other"},
+        "camera": {"width": size, "height": size, "pixel_size_um": 50.0, "bit_depth": 16},
+        "source": {"polar_deg": 40.0},
+        "frames": frames,
+    }
+    bundle = write_bundle(tmp_path / "bundle", doc, images)
+    assert main([str(bundle), str(tmp_path / "m"), "--quiet"]) == 0
+    report = json.loads((tmp_path / "m" / "report.json").read_text())
+    assert report["used"]["mask"]["stood_down"]
+    assert any(w.startswith("mask: no dark ground found") for w in report["warnings"])
+    with Image.open(tmp_path / "m" / "mask.png") as im:
+        assert (np.asarray(im) == 255).all()
