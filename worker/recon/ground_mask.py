@@ -15,7 +15,8 @@ sample does not.
    factor); the ground class gives the ground's level μ (its median) and the pixel noise
    σ (1.4826·MAD of neighbour differences over √2: a smooth fall-off of the light does not
    count), both measured on this scan.
-2. A pixel is object where its peak exceeds the ground's level where it lies by 6σ (the
+2. A pixel is object where its peak exceeds the ground's level where it lies by 6σ, and
+   by a tenth of it at least (noiseless data) (the
    level: the ground pixels smoothed over a sixteenth of the image, carried under the
    object from around it, vignetting and fall-off included) and, near the
    silhouette, where it exceeds half-way from the ground's level to the object's beside it
@@ -44,6 +45,7 @@ from worker.recon.mask import otsu_threshold
 __all__ = ["GroundMask", "ground_mask", "stack_peak"]
 
 _K_SIGMA = 6.0
+_MIN_MARGIN = 0.1
 _MIN_RATIO = 1.5
 _BORDER_PX = 4
 
@@ -133,7 +135,10 @@ def ground_mask(
     # The ground's level where it lies (vignetting, a lamp's fall-off): the pixels within
     # the noise floor of it, smoothed over a sixteenth of the image and carried under the
     # object from around it; twice more from the pixels within the floor of that.
-    margin = np.float32(_K_SIGMA * sigma)
+    # At least a tenth of the ground's level: noiseless data (a renderer's) would otherwise
+    # take the ground's own shading (a shadow's edge, light bounced off the object) for
+    # object.
+    margin = np.float32(max(_K_SIGMA * sigma, _MIN_MARGIN * level))
     threshold = level + float(margin)
     on_ground = finite & (v <= threshold)
     for _ in range(3):

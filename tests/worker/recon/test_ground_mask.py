@@ -7,7 +7,18 @@ from worker.recon.ground_mask import ground_mask, stack_peak
 from worker.recon.photometric import light_directions
 
 
-def _stack(rng, *, albedo=0.05, ground=0.02, size=96, radius=30.0, vignetting=0.0, k=24, lobe=0.5):
+def _stack(
+    rng,
+    *,
+    albedo=0.05,
+    ground=0.02,
+    size=96,
+    radius=30.0,
+    vignetting=0.0,
+    k=24,
+    lobe=0.5,
+    noise=0.002,
+):
     """A hemisphere of reflectance `albedo` with a glossy lobe on a flat ground, under k
     lights, with pixel-area coverage at the rim, shot-like noise, a fall-off of the light
     toward the corners and a few hot pixels. Returns the stack and the true (centre) mask."""
@@ -29,7 +40,7 @@ def _stack(rng, *, albedo=0.05, ground=0.02, size=96, radius=30.0, vignetting=0.
     s = s.reshape(k, size, ss, size, ss).mean(axis=(2, 4))
     yy, xx = np.mgrid[0:size, 0:size] - size / 2
     s *= 1 - vignetting * (xx**2 + yy**2) / (size / 2) ** 2
-    s = s + rng.normal(size=s.shape) * 0.002 * np.sqrt(s / 0.05 + 0.1)
+    s = s + rng.normal(size=s.shape) * noise * np.sqrt(s / 0.05 + 0.1)
     hot = rng.integers(0, size, (2, 6))
     s[:, hot[0], hot[1]] += 0.5
     c = np.arange(size) - size / 2
@@ -64,6 +75,16 @@ def test_dark_and_light_objects_on_velvet_are_found_whole(albedo):
     # Hot pixels on the ground and the brighter centre of the ground are not object.
     assert not found.mask[:8].any() and not found.mask[:, :8].any()
     assert found.ground_level == pytest.approx(0.02 * np.cos(np.radians(30)), rel=0.5)
+
+
+def test_noiseless_renders_keep_the_ground_out():
+    """No noise to set the floor by (a renderer's output): the ground's own shading under
+    the vignetting is not taken for object."""
+    rng = np.random.default_rng(5)
+    s, truth = _stack(rng, noise=0.0, vignetting=0.3)
+    found = ground_mask(stack_peak(s))
+    assert found.stood_down is None
+    assert _iou(found.mask, truth) > 0.97
 
 
 def test_no_dark_ground_stands_down_to_every_measured_pixel():
