@@ -168,9 +168,10 @@ def photometric_stereo(
         orthographic camera.
     least_squares_when_consistent : bool
         Where least squares over the pixel's lit candidates leaves every one of them within
-        the inlier tolerance, take it instead of the robust fit
-        (:func:`photometric_fit.consistent_least_squares`): the robust steps then act only
-        where the data show an outlier by their own measure.
+        the inlier tolerance and shows no lobe near its mirror direction, take it instead of
+        the robust fit (:func:`photometric_fit.consistent_least_squares`): the robust steps
+        then act only where the data show an outlier. Used for bundles without fringe
+        heights (never worse than least squares on a matte object).
     workers : int
         Threads sharing the chunks of pixels (the result does not depend on it).
 
