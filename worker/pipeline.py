@@ -27,6 +27,7 @@ from worker.model_dir import ModelArrays, albedo_png_bytes, write_model_dir_time
 from worker.recon.color import linear_to_srgb8
 from worker.recon.fusion import fuse_default, sharpen_heights
 from worker.recon.fusion_paper import fuse_paper
+from worker.recon.ground_mask import ground_mask
 from worker.recon.height import (
     GUARD_FRINGE,
     GUARD_NEIGHBOURHOOD,
@@ -215,6 +216,21 @@ def _reference_modulation(meas: Measurements) -> dict[str, float]:
 
 def _mask(meas: Measurements) -> np.ndarray:
     has_n = _has_normal(meas.normals) if meas.normals is not None else None
+    if meas.fringe_height_um is None and meas.photometric_peak is not None:
+        # Photographs alone: the object on its dark ground, from the stack of lit images.
+        found = ground_mask(meas.photometric_peak, has_normal=has_n)
+        meas.used["mask"] = {
+            "method": "dark ground (recon.ground_mask)",
+            # None where no ground class was found (report.json is strict JSON).
+            "ground_level": found.ground_level if np.isfinite(found.ground_level) else None,
+            "noise_sigma": found.ground_sigma if np.isfinite(found.ground_sigma) else None,
+            "stood_down": found.stood_down,
+        }
+        if found.stood_down is not None:
+            meas.warnings.append(
+                f"mask: no dark ground found ({found.stood_down}); every measured pixel is kept"
+            )
+        return found.mask
     has_h = np.isfinite(meas.fringe_height_um) if meas.fringe_height_um is not None else None
     brightness = meas.albedo
     return tablet_mask(
@@ -548,6 +564,17 @@ def _mask_products(meas: Measurements, mask: np.ndarray) -> _MaskProducts:
     if meas.residual is not None:
         quality["photometric_residual"] = np.where(mask, meas.residual, np.nan).astype(np.float32)
         quality["lights_used"] = np.where(mask, meas.lights_used, 0).astype(np.int16)
+        if meas.photometric_outliers is not None:
+            # Lit samples the robust fit left out: highlights, interreflections, penumbrae.
+            quality["photometric_outliers"] = np.where(mask, meas.photometric_outliers, 0).astype(
+                np.int16
+            )
+        if meas.fringe_height_um is None:
+            # Photographs alone: the measured normals themselves, the product that
+            # photometric stereo is judged by (normals.npy holds the integrated surface's).
+            quality["photometric_normals"] = np.where(mask[..., None], meas.normals, np.nan).astype(
+                np.float32
+            )
     if meas.modulation is not None:
         quality["fringe_modulation"] = np.where(mask, meas.modulation, np.nan).astype(np.float32)
     q = {

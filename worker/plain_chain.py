@@ -195,6 +195,10 @@ def _reconstruct(bundle, surface, timings: dict, progress: Progress) -> tuple[Mo
     }
     if lights_used is not None:
         quality["lights_used"] = np.where(mask, lights_used, 0).astype(np.int16)
+        if fringe_h is None:  # photographs alone: the measured normals, as the default's
+            quality["photometric_normals"] = np.where(mask[..., None], normals, np.nan).astype(
+                np.float32
+            )
         figures["normal_coverage"] = float(np.isfinite(normals[..., 2])[mask].mean())
     if fringe_h is not None:
         d = np.where(mask, fringe_h - height, np.nan).astype(np.float32)

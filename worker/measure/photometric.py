@@ -8,6 +8,7 @@ import numpy as np
 from worker.measure.frames import angle_key
 from worker.measure.result import Measurements
 from worker.recon.color import rgb_reflectance
+from worker.recon.ground_mask import stack_peak
 from worker.recon.parallel import run_blocks
 from worker.recon.photometric import light_directions, photometric_stereo
 from worker.recon.radiometry import flat_field
@@ -117,11 +118,20 @@ def measure_photometric(bundle, photo, meas, rho_ref, *, stacks=None, workers: i
     az = np.array([f.azimuth_deg for f in photo])
     polar = np.array([f.polar_deg for f in photo])
     lights = light_directions(az, polar)
-    res = photometric_stereo(shading, lights, workers=workers)
+    alone = meas.fringe_height_um is None
+    if alone:
+        # No heights to tell the object from its ground: the dark-ground mask's evidence.
+        meas.photometric_peak = stack_peak(shading)
+    # Without fringe heights nothing corrects the normals afterwards: least squares where
+    # it explains every lit sample, the robust fit elsewhere (never worse than least squares
+    # on a matte object). With fringes the fusion's bias correction and weights were tuned
+    # with the robust fit everywhere, and keep it.
+    res = photometric_stereo(shading, lights, least_squares_when_consistent=alone, workers=workers)
     meas.normals = res.normals
     meas.albedo = res.albedo
     meas.residual = res.residual
     meas.lights_used = res.lights_used
+    meas.photometric_outliers = res.outliers
     meas.photometric_polar_deg = float(np.median(polar))
     meas.used["photometric_azimuths_deg"] = sorted({angle_key(a) for a in az})
 

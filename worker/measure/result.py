@@ -39,6 +39,11 @@ class Measurements:
     albedo: np.ndarray | None = None  # grey ρ relative to white (photometric, else fringes)
     residual: np.ndarray | None = None
     lights_used: np.ndarray | None = None
+    photometric_outliers: np.ndarray | None = None  # lit samples the fit left out
+    # Per pixel, a high quantile of the photometric shading over the lights
+    # (`recon.ground_mask.stack_peak`): the evidence of the dark-ground mask, computed for
+    # bundles without fringe heights only.
+    photometric_peak: np.ndarray | None = None
     photometric_polar_deg: float = 45.0
     rgb_linear: np.ndarray | None = None
     # rgb_linear as 8-bit sRGB, when the colour stage ran in the background (it encodes it

@@ -28,6 +28,7 @@ from worker.recon.photometric_fit import (
     _select,
     asymmetric_refine,
     cone_resolve,
+    consistent_least_squares,
     estimate_sigma,
     initial_inliers,
     mirror_trim,
@@ -52,6 +53,9 @@ class PhotometricResult:
         misfit in units of n·l (0 for an exact fit, always 0 with exactly 3 inliers); NaN where
         not solved.
     lights_used : (H, W) int16, number of inlier lights (0 where not solved).
+    outliers : (H, W) int16, number of samples the fit left out although they read above the
+        noise floor (3σ of the shading noise) in front of its terminator (n·l above
+        ``shadow_fraction``): highlights, interreflections, cast shadows' penumbrae.
     noise_sigma : float, σ of the shading noise used for the tolerances (given or estimated).
     """
 
@@ -60,6 +64,7 @@ class PhotometricResult:
     residual: np.ndarray
     lights_used: np.ndarray
     noise_sigma: float = 0.0
+    outliers: np.ndarray | None = None
 
 
 def light_directions(azimuth_deg, polar_deg) -> np.ndarray:
@@ -125,6 +130,7 @@ def photometric_stereo(
     max_iterations: int = 6,
     highlight_rounds: int | None = None,
     highlight_cone_deg: float | None = 20.0,
+    least_squares_when_consistent: bool = False,
     workers: int = 1,
 ) -> PhotometricResult:
     """Robust Lambertian photometric stereo, vectorised over pixels.
@@ -160,6 +166,12 @@ def photometric_stereo(
         those samples and keeps the new fit where they sit significantly above it.  None:
         off.  Both highlight steps take the view direction (0, 0, −1) of the spec's
         orthographic camera.
+    least_squares_when_consistent : bool
+        Where least squares over the pixel's lit candidates leaves every one of them within
+        the inlier tolerance and shows no lobe near its mirror direction, take it instead of
+        the robust fit (:func:`photometric_fit.consistent_least_squares`): the robust steps
+        then act only where the data show an outlier. Used for bundles without fringe
+        heights (never worse than least squares on a matte object).
     workers : int
         Threads sharing the chunks of pixels (the result does not depend on it).
 
@@ -191,6 +203,7 @@ def photometric_stereo(
     albedo = np.full(h * w, np.nan, dtype=np.float32)
     residual = np.full(h * w, np.nan, dtype=np.float32)
     used = np.zeros(h * w, dtype=np.int16)
+    rejected = np.zeros(h * w, dtype=np.int16)
 
     if noise_sigma is None and pix.size:
         s_sub = flat[:, pix[:: max(1, pix.size // _SIGMA_SAMPLE_PIXELS)]].astype(np.float32)
@@ -233,6 +246,8 @@ def photometric_stereo(
                 model, cand, inl, b, ok, noise_sigma or 0.0, cone_deg=highlight_cone_deg
             )
         b = asymmetric_refine(model, inl, b, ok, noise_sigma or 0.0)
+        if least_squares_when_consistent:
+            inl, b, ok = consistent_least_squares(model, cand, inl, b, ok, noise_sigma or 0.0)
         rho = _row_norms(b)
         ok &= rho > 0
         n = b / np.where(ok, rho, 1.0)[:, None]
@@ -247,6 +262,8 @@ def photometric_stereo(
         albedo[idx] = np.where(ok, rho, np.nan)
         residual[idx] = np.where(ok, res, np.nan)
         used[idx] = np.where(ok, m, 0)
+        lit = valid & (s > abs_tol) & (pred > np.float32(shadow_fraction) * rho[None, :])
+        rejected[idx] = np.where(ok, _count(lit & ~inl), 0)
 
     # Pixels are independent: chunks run in threads (numpy releases the GIL on the arrays).
     run_blocks(solve, range(0, pix.size, chunk), workers=workers)
@@ -257,4 +274,5 @@ def photometric_stereo(
         residual=residual.reshape(h, w),
         lights_used=used.reshape(h, w),
         noise_sigma=float(noise_sigma or 0.0),
+        outliers=rejected.reshape(h, w),
     )

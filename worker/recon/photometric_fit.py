@@ -14,6 +14,7 @@ import numpy as np
 __all__ = [
     "Model",
     "cone_resolve",
+    "consistent_least_squares",
     "estimate_sigma",
     "initial_inliers",
     "mirror_trim",
@@ -646,3 +647,51 @@ def cone_resolve(model, cand, inl, b, ok, sigma, *, cone_deg=20.0, k_sigma=1.5, 
     _set_cols(inl, cols[take], _cols(inl2, take))
     b[cols[take]] = _rows(b2, take)
     return inl, b
+
+
+def consistent_least_squares(model, cand, inl, b, ok, sigma=0.0, *, cone_deg=20.0, k_sigma=2.5):
+    """Least squares over each pixel's lit candidates where it explains all of them: no
+    candidate beyond the inlier tolerance of that fit (|r| ≤ tolerance·max(l·b, 0) +
+    abs_tol), and no lobe: the mean residual of the candidates within ``cone_deg`` of the
+    fit's mirror direction (half vector near the normal, as in :func:`cone_resolve`) does
+    not exceed that of the others by more than ``k_sigma`` standard errors
+    (σ·√(1/m + 1/m_far); the others, not zero: a lobe lifts the least-squares fit, so that
+    the samples away from it sit below it). Returns (inliers, b, ok).
+
+    Under noise alone, least squares over every lit sample is the efficient estimate
+    (Gauss–Markov), and every step that drops samples on a test (trim, mirror peeling, the
+    highlight cone, the asymmetric reweighting) drops some good ones by chance: on a matte
+    ball rendered by Mitsuba under 96 lights the robust fit's mean error was 7 % above
+    least squares'. Where least squares leaves a sample outside the tolerance (a highlight,
+    a cast shadow, an interreflection) the robust fit stands. A weak lobe that stays within
+    the tolerance and too weak for the lobe test is left in. Rendered objects (Mitsuba, 96
+    lights; mean error robust → this): matte ball 0.180° → 0.168° (least squares 0.168°),
+    cat 3.44° → 3.42°, harvest 4.18° → 4.17°, dark glossy ball 4.48° → 4.47°; synthetic
+    shading (bench/photometric_synthetic.py): Lambertian 96 lights 0.19° → 0.16°, broad lobes
+    a little worse (16 lights 0.25·(n·h)²⁰: 1.40° → 1.45°; Torrance–Sparrow m = 0.4: 1.03° →
+    1.07°): hence only where nothing corrects the normals later (photometric-only bundles).
+    """
+    b_ls, ok_ls = _fit(model.s, cand, model.lights32, model.ll6)
+    r, tol, _ = model.residual(b_ls)
+    # Beyond the tolerance either way: a sample the fit puts behind its terminator (l·b ≤ 0,
+    # tolerance abs_tol) that reads lit is beyond it too.
+    bad = cand & (np.abs(r) > tol)
+    take = ok_ls & ~np.any(bad, axis=0)
+    if model.half32 is not None and sigma > 0:
+        # A lobe inside the tolerance: the candidates within `cone_deg` of the fit's mirror
+        # direction sit above the others, significantly (one-sided).
+        bc = b_ls.astype(np.float32)
+        rho = np.sqrt(np.einsum("ni,ni->n", bc, bc))
+        cos_h = model.half32 @ (bc / np.maximum(rho, np.float32(1e-30))[:, None]).T
+        near = cand & (cos_h > np.float32(np.cos(np.radians(cone_deg))))
+        far = cand & ~near
+        m, m_far = _count(near), _count(far)
+        excess = _select(near, r).sum(axis=0) / np.maximum(m, 1)
+        excess -= _select(far, r).sum(axis=0) / np.maximum(m_far, 1)
+        se = np.float32(sigma) * np.sqrt(1.0 / np.maximum(m, 1) + 1.0 / np.maximum(m_far, 1))
+        lobe = (m > 0) & (m_far > 0) & (excess > k_sigma * se)
+        take &= ~lobe
+    b = np.where(take[:, None], b_ls, b)
+    ok = np.where(take, ok_ls, ok)
+    inl = _select(take[None, :], cand, inl)
+    return inl, b, ok

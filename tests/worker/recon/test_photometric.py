@@ -224,3 +224,54 @@ def test_threads_share_the_chunks_without_changing_the_result(monkeypatch):
     two = photometric_stereo(s, ls, workers=2)
     for field in ("normals", "albedo", "residual", "lights_used"):
         np.testing.assert_array_equal(getattr(two, field), getattr(one, field))
+
+
+def _dense_sphere(rng, lobe):
+    """A 40 px sphere under 48 lights (rings at 20°, 35°, 50°), noise σ = 0.003, plus a
+    Blinn–Phong lobe of weight `lobe`: shading, lights and true normals."""
+    yy, xx = np.mgrid[0:40, 0:40] - 19.5
+    r2 = (xx**2 + yy**2) / 18.0**2
+    inside = r2 < 1
+    n = np.stack([xx / 18.0, yy / 18.0, -np.sqrt(np.clip(1 - r2, 0, 1))], -1)
+    n[~inside] = (0, 0, -1)
+    ls = light_directions(np.arange(48) * 7.5, np.repeat([20.0, 35.0, 50.0], 16))
+    half = ls + (0, 0, -1)
+    half /= np.linalg.norm(half, axis=1, keepdims=True)
+    cos = np.einsum("hwc,kc->khw", n, ls)
+    spec = lobe * np.clip(np.einsum("hwc,kc->khw", n, half), 0, 1) ** 50 * (cos > 0)
+    s = 0.5 * np.clip(cos, 0, None) + spec + rng.normal(0, 0.003, cos.shape)
+    return s.astype(np.float32), ls, n, inside
+
+
+def _mean_error_deg(est, truth, where):
+    dot = np.clip(np.sum(est * truth, -1), -1, 1)[where]
+    return float(np.degrees(np.arccos(dot)).mean())
+
+
+def test_least_squares_where_consistent_is_least_squares_on_a_matte_sphere():
+    rng = np.random.default_rng(3)
+    s, ls, n, inside = _dense_sphere(rng, lobe=0.0)
+    gated = photometric_stereo(s, ls, mask=inside, least_squares_when_consistent=True)
+    robust = photometric_stereo(s, ls, mask=inside)
+    # Where every lit sample fits, the gated result is least squares over the lit samples:
+    # none of them is an outlier.
+    assert np.mean(gated.outliers[inside] == 0) > 0.9
+    assert np.mean(gated.outliers[inside] == 0) > np.mean(robust.outliers[inside] == 0)
+    assert _mean_error_deg(gated.normals, n, inside) <= _mean_error_deg(robust.normals, n, inside)
+
+
+def test_least_squares_where_consistent_keeps_the_robust_fit_at_highlights():
+    rng = np.random.default_rng(4)
+    s, ls, n, inside = _dense_sphere(rng, lobe=0.5)
+    gated = photometric_stereo(s, ls, mask=inside, least_squares_when_consistent=True)
+    robust = photometric_stereo(s, ls, mask=inside)
+    lit = np.einsum("hwc,kc->khw", n, ls) > 0.1
+    w = lit.astype(float)
+    a = np.einsum("khw,ki,kj->hwij", w, ls, ls) + 1e-9 * np.eye(3)
+    b = np.linalg.solve(a, np.einsum("khw,khw,ki->hwi", w, s, ls)[..., None])[..., 0]
+    ls_normals = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    e_gated = _mean_error_deg(gated.normals, n, inside)
+    assert e_gated < 0.5 * _mean_error_deg(ls_normals, n, inside)
+    assert e_gated == pytest.approx(_mean_error_deg(robust.normals, n, inside), rel=0.1)
+    # The highlight samples are counted as outliers: lit, yet left out.
+    assert gated.outliers[inside].max() >= 3
