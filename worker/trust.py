@@ -18,7 +18,8 @@ normals pulled the surface apart by more than the fringes' own noise explains), 
 Height uncertainty σ_h (µm), a conservative per-pixel estimate:
 
 - where a fringe height exists, the local RMS of the disagreement d = f − h (normalised
-  Gaussian convolution of d² over the fringe pixels, σ = ``RMS_SIGMA_PX``): the fused height
+  Gaussian convolution of d² over the fringe pixels, σ = ``RMS_SIGMA_PX``), and at least the
+  pixel's own |d|: the fused height
   lies between the fringes and the normals, so |f − h| bounds its error by the fringes' own
   noise plus any bias between the two (an over-estimate where the fusion averaged the fringe
   noise away, which is the safe side);
@@ -149,6 +150,11 @@ def height_uncertainty_um(
         num = ndimage.gaussian_filter(np.where(anchored, d2, 0.0), RMS_SIGMA_PX)
         with np.errstate(invalid="ignore", divide="ignore"):
             rms = np.sqrt(np.where(anchored, num / np.maximum(w, 1e-12), 0.0))
+        # A pixel whose own fringe height is further off than its neighbourhood's RMS (a
+        # disagreement, a cliff) is uncertain by at least that: one of the two is wrong by
+        # about |d| (bench/trust_calibration.py: with the RMS alone, 34 % of the errors of
+        # "disagree" pixels were within σ_h; with this floor, docs/benchmarks.md).
+        rms = np.where(anchored, np.maximum(rms, np.sqrt(d2)), rms)
         dist, (ri, ci) = ndimage.distance_transform_edt(~anchored, return_indices=True)
         anchor_sigma = rms[ri, ci]
     else:

@@ -75,12 +75,24 @@ def test_uncertainty_is_the_fringe_noise_where_anchored_and_grows_as_a_random_wa
 
 
 def test_guarded_pixels_are_not_anchors():
+    """The guard distrusted these fringe heights (500 µm off): σ_h there comes from the
+    neighbours it was filled from, not from the distrusted |d|."""
     mask, d = _maps()
+    d[18:23, 18:23] = 500.0
     guard = np.zeros(mask.shape, np.uint8)
     guard[18:23, 18:23] = 1
     sig = height_uncertainty_um(mask, d, pixel_size_um=S_UM, guard=guard)
     plain = height_uncertainty_um(mask, d, pixel_size_um=S_UM)
-    assert sig[20, 20] > plain[20, 20]
+    assert plain[20, 20] >= 500.0  # as an anchor, its own |d| is its floor
+    assert sig[20, 20] < 20.0
+
+
+def test_a_disagreeing_pixel_is_uncertain_by_its_own_disagreement():
+    mask, d = _maps()
+    d[30, 30] = 40.0
+    sig = height_uncertainty_um(mask, d, pixel_size_um=S_UM)
+    assert sig[30, 30] >= 40.0
+    assert sig[30, 34] < 10.0  # 4 px away, past the RMS window
 
 
 def test_without_fringes_heights_drift_from_the_middle():
