@@ -187,6 +187,13 @@ def test_distances_and_profiles_carry_their_uncertainty(scholar_page, tools, tru
     text = readout.inner_text()
     top = float(re.search(r"up to ([\d.]+) µm", text).group(1))
     assert top == pytest.approx(sigma_top, rel=0.1), (text, sigma_top)
+    # For the docs: a short line in the normals-only band, where the band is wide enough
+    # to see at the chart's scale (the tool is still on: two more clicks).
+    for p in [(44.5, 16.0, -1.0), (47.5, 16.0, -1.0)]:
+        page.mouse.click(*tools.screen_of(page, p))
+    page.wait_for_function(
+        "() => document.getElementById('readout').textContent.startsWith('Profile: 3.0')"
+    )
     _shot(page, "viewer-profile-band.png")
     page.keyboard.press("Escape")
 
