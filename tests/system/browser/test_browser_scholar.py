@@ -304,6 +304,19 @@ def test_best_light_for_a_region_rakes_across_its_wedges(scholar_page, tools, tr
     third.click()
     light = page.evaluate("() => window.hammurabi.viewer.light")
     assert abs(light["azimuthDeg"] - want) < 0.01
+
+    # A rectangle between two clicks: 3 × 12 mm around the groove = 30 × 120 pixels of 0.1 mm.
+    page.locator("#light-strip-close").click()
+    page.locator("#region-shape").select_option("rectangle")
+    page.locator("#viewer").focus()
+    page.keyboard.press("w")  # off
+    page.keyboard.press("w")  # on, as a rectangle
+    for p in [(f.groove_x_mm - 1.5, 10.0, -1.0), (f.groove_x_mm + 1.5, 22.0, -1.0)]:
+        page.mouse.click(*tools.screen_of(page, p))
+    strip.wait_for(state="visible")
+    assert 3000 <= int(strip.get_attribute("data-normals")) <= 4200
+    azimuth = float(strip.get_attribute("data-azimuth"))
+    assert min(abs(azimuth - 90), abs(azimuth - 270)) <= 10, azimuth
     page.keyboard.press("Escape")
 
 
