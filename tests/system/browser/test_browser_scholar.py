@@ -364,6 +364,15 @@ def test_lens_and_enhancements_come_back_from_the_permalink(scholar_page, tools,
     back = page.evaluate("() => window.hammurabi.viewer.enhance")
     assert back["normalUnsharp"] == 1.5 and back["lens"] == lens
     assert page.locator("#lens-on").is_checked() and page.locator("#lens-ring").is_visible()
+    # A screenshot says how it was enhanced (its PNG Description).
+    from PIL import Image
+
+    page.locator("#shot-w").fill("320")
+    page.locator("#shot-h").fill("200")
+    with page.expect_download() as dl:
+        page.locator("#screenshot").click()
+    text = Image.open(dl.value.path()).text
+    assert "normals unsharp-masked (k = 1.5, r = 8 px); lens: trust" in text["Description"], text
 
 
 def _slabs(model_dir: Path) -> None:
