@@ -168,3 +168,15 @@ def test_derive_assets_without_quality_maps_says_normals_only(tmp_path):
     assert meta["inputs"] == []
     assert meta["class_fraction"][str(NORMALS_ONLY)] == pytest.approx(1.0)
     assert np.isfinite(np.load(tmp_path / "uncertainty_um.npy")[mask]).all()
+
+
+def test_steep_normals_carry_heights_less_well():
+    """Along a normal tilted by θ the slope error is σ_θ/n_z²: the walk grows by 1/cos²θ."""
+    mask, d = _maps()
+    d[:, :] = np.where(mask, 0.0, np.nan)
+    d[:, 40:] = np.nan
+    n = np.zeros((*mask.shape, 3))
+    n[..., 0], n[..., 2] = 0.8, -0.6  # 53° tilt: 1/n_z² = 2.78
+    flat = height_uncertainty_um(mask, d, pixel_size_um=S_UM, normal_sigma=0.004)
+    steep = height_uncertainty_um(mask, d, pixel_size_um=S_UM, normal_sigma=0.004, normals=n)
+    assert steep[20, 55] / flat[20, 55] == pytest.approx(1 / 0.36, rel=0.01)
