@@ -5,6 +5,7 @@ running elsewhere is left alone; transient errors are the named ones."""
 from __future__ import annotations
 
 import hashlib
+import json
 import shutil
 import subprocess
 import sys
@@ -87,6 +88,9 @@ def test_reconstruction_job_stores_one_model_with_assets_and_redelivery_is_a_no_
         "accessibility.png",
         "normals.png",
         "shading.json",
+        "trust.png",
+        "trust.json",
+        "uncertainty_um.npy",
         "report.json",
     ):
         assert name in model.assets, name
@@ -108,6 +112,12 @@ def test_reconstruction_job_stores_one_model_with_assets_and_redelivery_is_a_no_
     with capp.session_factory()() as session:
         assert session.scalar(select(func.count()).select_from(Model)) == 1
         assert "accessibility.png" in session.get(Model, model.id).assets
+        # The derive job fetched the quality maps: the trust map knows where fringes were.
+        stored = session.get(Model, model.id).assets
+        assert "trust.png" in stored
+    storage = storage_from_settings(env)
+    trust = json.loads(storage.read_bytes(f"{model.storage_prefix}/trust.json"))
+    assert "fringe_disagreement_um" in trust["inputs"], trust["inputs"]
 
 
 def test_a_job_running_with_a_live_heartbeat_is_left_alone(env):
