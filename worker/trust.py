@@ -18,7 +18,8 @@ normals pulled the surface apart by more than the fringes' own noise explains), 
 Height uncertainty σ_h (µm), a conservative per-pixel estimate:
 
 - where a fringe height exists, the local RMS of the disagreement d = f − h (normalised
-  Gaussian convolution of d² over the fringe pixels, σ = ``RMS_SIGMA_PX``): the fused height
+  Gaussian convolution of d² over the fringe pixels, σ = ``RMS_SIGMA_PX``), and at least the
+  pixel's own |d|: the fused height
   lies between the fringes and the normals, so |f − h| bounds its error by the fringes' own
   noise plus any bias between the two (an over-estimate where the fusion averaged the fringe
   noise away, which is the safe side);
@@ -72,6 +73,8 @@ RMS_SIGMA_PX = 2.0
 # The normals' noise along an integration path: averaged over this many pixels (a path is
 # tens of pixels long; one pixel's residual is itself noisy).
 PATH_SIGMA_PX = 8.0
+# n_z² below this (walls steeper than ~77°) gives no finite slope: capped there.
+MIN_NZ2 = 0.05
 
 
 def _robust_sigma(values: np.ndarray) -> float:
@@ -120,11 +123,15 @@ def height_uncertainty_um(
     pixel_size_um: float,
     normal_sigma: np.ndarray | float = NORMAL_FLOOR_RAD,
     guard: np.ndarray | None = None,
+    normals: np.ndarray | None = None,
 ) -> np.ndarray:
     """(H, W) float32 σ_h in µm on the mask, NaN off it (module docstring for the model).
 
     normal_sigma: the normals' angular noise in rad, per pixel or one value (inf/NaN where
-    no normal was solved: the floor is used)."""
+    no normal was solved: the floor is used).
+    normals: (H, W, 3) unit normals (n_z < 0), optional: an angular error σ_θ of a normal
+    tilted from the view axis makes a slope error σ_θ/n_z² along its tilt (the fusion's edge
+    weights, docs/reconstruction.md), so steep walls carry heights less well."""
     mask = np.asarray(mask, bool)
     if not pixel_size_um > 0:
         raise ValueError(f"pixel_size_um must be > 0, got {pixel_size_um}")
@@ -149,6 +156,11 @@ def height_uncertainty_um(
         num = ndimage.gaussian_filter(np.where(anchored, d2, 0.0), RMS_SIGMA_PX)
         with np.errstate(invalid="ignore", divide="ignore"):
             rms = np.sqrt(np.where(anchored, num / np.maximum(w, 1e-12), 0.0))
+        # A pixel whose own fringe height is further off than its neighbourhood's RMS (a
+        # disagreement, a cliff) is uncertain by at least that: one of the two is wrong by
+        # about |d| (bench/trust_calibration.py: with the RMS alone, 34 % of the errors of
+        # "disagree" pixels were within σ_h; with this floor, docs/benchmarks.md).
+        rms = np.where(anchored, np.maximum(rms, np.sqrt(d2)), rms)
         dist, (ri, ci) = ndimage.distance_transform_edt(~anchored, return_indices=True)
         anchor_sigma = rms[ri, ci]
     else:
@@ -159,12 +171,17 @@ def height_uncertainty_um(
         free[seed] = False
         dist = ndimage.distance_transform_edt(free)
         anchor_sigma = np.zeros(mask.shape)
-    # The walk's variance is the sum of its steps' σ_θ² along the path: the local mean of σ_θ²
-    # (over the tablet, PATH_SIGMA_PX) stands for it, not one pixel's noisy value.
+    # Slope error of a step: tan σ_θ, divided by n_z² along a tilted normal's slope.
+    slope_err = np.tan(np.minimum(sig_t, 1.0))
+    if normals is not None:
+        nz2 = np.nan_to_num(np.asarray(normals, np.float64)[..., 2] ** 2, nan=1.0)
+        slope_err = slope_err / np.maximum(nz2, MIN_NZ2)
+    # The walk's variance is the sum of its steps' squared slope errors along the path: their
+    # local mean (over the tablet, PATH_SIGMA_PX) stands for it, not one pixel's noisy value.
     on = mask.astype(np.float64)
-    var_t = ndimage.gaussian_filter(np.where(mask, sig_t**2, 0.0), PATH_SIGMA_PX)
-    sig_path = np.sqrt(var_t / np.maximum(ndimage.gaussian_filter(on, PATH_SIGMA_PX), 1e-12))
-    walk = pixel_size_um * np.tan(np.minimum(sig_path, 1.0)) * np.sqrt(dist)
+    var_s = ndimage.gaussian_filter(np.where(mask, slope_err**2, 0.0), PATH_SIGMA_PX)
+    slope_path = np.sqrt(var_s / np.maximum(ndimage.gaussian_filter(on, PATH_SIGMA_PX), 1e-12))
+    walk = pixel_size_um * slope_path * np.sqrt(dist)
     sigma = np.sqrt(anchor_sigma**2 + walk**2)
     out[mask] = sigma[mask]
     return out

@@ -61,8 +61,16 @@ def trust_assets(model_dir: Path, height_um: np.ndarray, report: dict) -> dict[s
     pixel_size_um = float(report["pixel_size_um"])
     sig_t = normal_sigma_from_maps(q["photometric_residual"], q["lights_used"])
     classes = trust_classes(mask, d, guard=q["guard"], walls=q["walls"])
+    normals = None
+    if (model_dir / "normals.npy").is_file():
+        try:
+            normals = np.load(model_dir / "normals.npy", allow_pickle=False)
+        except (OSError, ValueError):
+            normals = None
+        if normals is not None and normals.shape != (*height_um.shape, 3):
+            normals = None
     sigma = height_uncertainty_um(
-        mask, d, pixel_size_um=pixel_size_um, normal_sigma=sig_t, guard=q["guard"]
+        mask, d, pixel_size_um=pixel_size_um, normal_sigma=sig_t, guard=q["guard"], normals=normals
     )
     d_scale = legend_scale_um(d, mask) if d is not None else 1.0
     s_scale = legend_scale_um(sigma, mask)

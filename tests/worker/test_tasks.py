@@ -5,6 +5,7 @@ running elsewhere is left alone; transient errors are the named ones."""
 from __future__ import annotations
 
 import hashlib
+import json
 import shutil
 import subprocess
 import sys
@@ -89,6 +90,9 @@ def test_reconstruction_job_stores_one_model_with_assets_and_redelivery_is_a_no_
         "accessibility.png",
         "normals.png",
         "shading.json",
+        "trust.png",
+        "trust.json",
+        "uncertainty_um.npy",
         "report.json",
         "photos/index.json",
         "gloss.json",
@@ -122,8 +126,13 @@ def test_reconstruction_job_stores_one_model_with_assets_and_redelivery_is_a_no_
         assert "accessibility.png" in assets
         # Tiles rebuilt in place: the same tileset, still recorded once.
         assert "tiles/index.json" in assets and "tiles/3d/tileset.json" not in assets
-    files = storage_from_settings(env).read_bytes(f"{model.storage_prefix}/tiles/files.json")
+        # The derive job fetched the quality maps: the trust map knows where fringes were.
+        assert "trust.png" in assets
+    storage = storage_from_settings(env)
+    files = storage.read_bytes(f"{model.storage_prefix}/tiles/files.json")
     assert "3d/tileset.json" in files.decode()
+    trust = json.loads(storage.read_bytes(f"{model.storage_prefix}/trust.json"))
+    assert "fringe_disagreement_um" in trust["inputs"], trust["inputs"]
 
 
 def test_a_job_running_with_a_live_heartbeat_is_left_alone(env):

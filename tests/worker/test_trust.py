@@ -75,12 +75,24 @@ def test_uncertainty_is_the_fringe_noise_where_anchored_and_grows_as_a_random_wa
 
 
 def test_guarded_pixels_are_not_anchors():
+    """The guard distrusted these fringe heights (500 µm off): σ_h there comes from the
+    neighbours it was filled from, not from the distrusted |d|."""
     mask, d = _maps()
+    d[18:23, 18:23] = 500.0
     guard = np.zeros(mask.shape, np.uint8)
     guard[18:23, 18:23] = 1
     sig = height_uncertainty_um(mask, d, pixel_size_um=S_UM, guard=guard)
     plain = height_uncertainty_um(mask, d, pixel_size_um=S_UM)
-    assert sig[20, 20] > plain[20, 20]
+    assert plain[20, 20] >= 500.0  # as an anchor, its own |d| is its floor
+    assert sig[20, 20] < 20.0
+
+
+def test_a_disagreeing_pixel_is_uncertain_by_its_own_disagreement():
+    mask, d = _maps()
+    d[30, 30] = 40.0
+    sig = height_uncertainty_um(mask, d, pixel_size_um=S_UM)
+    assert sig[30, 30] >= 40.0
+    assert sig[30, 34] < 10.0  # 4 px away, past the RMS window
 
 
 def test_without_fringes_heights_drift_from_the_middle():
@@ -156,3 +168,15 @@ def test_derive_assets_without_quality_maps_says_normals_only(tmp_path):
     assert meta["inputs"] == []
     assert meta["class_fraction"][str(NORMALS_ONLY)] == pytest.approx(1.0)
     assert np.isfinite(np.load(tmp_path / "uncertainty_um.npy")[mask]).all()
+
+
+def test_steep_normals_carry_heights_less_well():
+    """Along a normal tilted by θ the slope error is σ_θ/n_z²: the walk grows by 1/cos²θ."""
+    mask, d = _maps()
+    d[:, :] = np.where(mask, 0.0, np.nan)
+    d[:, 40:] = np.nan
+    n = np.zeros((*mask.shape, 3))
+    n[..., 0], n[..., 2] = 0.8, -0.6  # 53° tilt: 1/n_z² = 2.78
+    flat = height_uncertainty_um(mask, d, pixel_size_um=S_UM, normal_sigma=0.004)
+    steep = height_uncertainty_um(mask, d, pixel_size_um=S_UM, normal_sigma=0.004, normals=n)
+    assert steep[20, 55] / flat[20, 55] == pytest.approx(1 / 0.36, rel=0.01)

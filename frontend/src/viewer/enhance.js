@@ -51,6 +51,20 @@ export function checkEnhance(e) {
 }
 
 /**
+ * What a screenshot's description says of the enhancements ('' when off), so a saved image
+ * tells how it was made: "normals unsharp-masked (k = 1.5, r = 8 px); lens: trust".
+ * @param {object} e see {@link checkEnhance}
+ */
+export function describeEnhance(e) {
+  const parts = [];
+  const r = `r = ${e.radiusPx} px`;
+  if (e.normalUnsharp > 0) parts.push(`normals unsharp-masked (k = ${e.normalUnsharp}, ${r})`);
+  if (e.lumaUnsharp > 0) parts.push(`luminance unsharp-masked (k = ${e.lumaUnsharp}, ${r})`);
+  if (e.lens) parts.push(`lens: ${e.lens.mode}`);
+  return parts.join('; ');
+}
+
+/**
  * The lens in the shader's terms: gl_FragCoord is in device pixels from the bottom-left
  * corner, the page's positions in CSS pixels from the top-left.
  * @param {{x: number, y: number, radius: number}} lens CSS pixels of the canvas

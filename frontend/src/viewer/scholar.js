@@ -180,7 +180,7 @@ export function bindScholarTools(viewer, context) {
     if (tool !== 'light' || !downAt) return;
     const moved = Math.hypot(e.clientX - downAt[0], e.clientY - downAt[1]);
     downAt = null;
-    if (moved <= 4) proposeLight(e.clientX, e.clientY);
+    if (moved <= 4) pickRegion(e.clientX, e.clientY);
   };
   canvas.addEventListener('pointerdown', onDown);
   canvas.addEventListener('pointerup', onUp);
@@ -193,7 +193,10 @@ export function bindScholarTools(viewer, context) {
     canvas.classList.toggle('picking', Boolean(tool));
     if (tool === 'section') sectionPicker.start();
     else sectionPicker.stop();
-    if (tool === 'light') say('Click the middle of the region to light.');
+    corner = null;
+    if (tool === 'light') {
+      say($('region-shape').value === 'rectangle' ? 'Click two opposite corners of the region to light.' : 'Click the middle of the region to light.');
+    }
     else if (tool === 'section') say('Click the two ends of the section line.');
     if (tool) canvas.classList.add('picking');
   }
@@ -213,24 +216,39 @@ export function bindScholarTools(viewer, context) {
     return { normals: a.normals?.image, albedo: a.albedo?.image ?? null, rotation: null };
   }
 
-  function crop(image, sx, sy, size, out) {
-    const c = new OffscreenCanvas(out, out);
+  function crop(image, sx, sy, sw, sh, ow, oh) {
+    const c = new OffscreenCanvas(ow, oh);
     const ctx = c.getContext('2d', { willReadFrequently: true });
     ctx.imageSmoothingEnabled = true;
-    ctx.drawImage(image, sx, sy, size, size, 0, 0, out, out);
-    return ctx.getImageData(0, 0, out, out).data;
+    ctx.drawImage(image, sx, sy, sw, sh, 0, 0, ow, oh);
+    return ctx.getImageData(0, 0, ow, oh).data;
   }
 
-  let stripLights = [];
-  function proposeLight(clientX, clientY) {
+  let corner = null; // a rectangle's first corner: {hit, maps}
+  function pickRegion(clientX, clientY) {
     const hit = viewer.pick(clientX, clientY);
     if (!hit?.uv) return say('Best light: click on the tablet.');
     const maps = mapsOfHit(hit);
     if (!maps.normals) return say('Best light: this model (or face) has no normals.png to compute it from.');
-    // Texels per mm at the point: from a second pick a few pixels away (any model, any face).
-    const probe = viewer.pick(clientX + 6, clientY) ?? viewer.pick(clientX - 6, clientY);
     const W = maps.normals.width;
     const H = maps.normals.height;
+    if ($('region-shape').value === 'rectangle') {
+      if (!corner || (corner.hit.part ?? null) !== (hit.part ?? null)) {
+        corner = { hit };
+        viewer.setMarks([hit.point]);
+        return say('Best light: click the opposite corner of the rectangle.');
+      }
+      const a = corner.hit;
+      corner = null;
+      const [u0, u1] = [Math.min(a.uv[0], hit.uv[0]) * W, Math.max(a.uv[0], hit.uv[0]) * W];
+      const [v0, v1] = [Math.min(a.uv[1], hit.uv[1]) * H, Math.max(a.uv[1], hit.uv[1]) * H];
+      const sw = Math.max(u1 - u0, 3);
+      const sh = Math.max(v1 - v0, 3);
+      const k = Math.min(1, MAX_CROP_PX / Math.max(sw, sh));
+      return lightRegion({ maps, sx: u0, sy: v0, sw, sh, ow: Math.max(3, Math.round(sw * k)), oh: Math.max(3, Math.round(sh * k)), circle: false, marks: [a.point, hit.point] });
+    }
+    // Texels per mm at the point: from a second pick a few pixels away (any model, any face).
+    const probe = viewer.pick(clientX + 6, clientY) ?? viewer.pick(clientX - 6, clientY);
     let texPerMm = null;
     if (probe?.uv && (probe.part ?? null) === (hit.part ?? null)) {
       const dmm = Math.hypot(...probe.point.map((v, k) => v - hit.point[k]));
@@ -244,31 +262,39 @@ export function bindScholarTools(viewer, context) {
     const rTex = Math.max(3, radiusMm * texPerMm);
     const size = Math.ceil(2 * rTex);
     const out = Math.min(size, MAX_CROP_PX);
-    const cx = hit.uv[0] * W - rTex;
-    const cy = hit.uv[1] * H - rTex;
-    const nrm = crop(maps.normals, cx, cy, size, out);
-    // Outside the circle: no normal (alpha 0), so it is neither searched nor shaded.
-    for (let y = 0; y < out; y++) {
-      for (let x = 0; x < out; x++) {
-        if (Math.hypot(x + 0.5 - out / 2, y + 0.5 - out / 2) > out / 2) nrm[4 * (y * out + x) + 3] = 0;
+    const sx = hit.uv[0] * W - rTex;
+    const sy = hit.uv[1] * H - rTex;
+    return lightRegion({ maps, sx, sy, sw: size, sh: size, ow: out, oh: out, circle: true, marks: [hit.point] });
+  }
+
+  let stripLights = [];
+  /** The best light for a crop of the normal map, its strip of eight, and apply the best. */
+  function lightRegion({ maps, sx, sy, sw, sh, ow, oh, circle, marks }) {
+    const nrm = crop(maps.normals, sx, sy, sw, sh, ow, oh);
+    if (circle) {
+      // Outside the circle: no normal (alpha 0), so it is neither searched nor shaded.
+      for (let y = 0; y < oh; y++) {
+        for (let x = 0; x < ow; x++) {
+          if (Math.hypot(x + 0.5 - ow / 2, y + 0.5 - oh / 2) > ow / 2) nrm[4 * (y * ow + x) + 3] = 0;
+        }
       }
     }
     const normals = modelNormals(nrm, maps.rotation);
     if (normals.length < 9) return say('Best light: too few normals there.');
     const best = bestLight(normals);
-    const albedo = maps.albedo ? crop(maps.albedo, cx, cy, size, out) : null;
+    const albedo = maps.albedo ? crop(maps.albedo, sx, sy, sw, sh, ow, oh) : null;
     stripLights = rakingSet(best.basis, best.elevationDeg, best.localAzimuthDeg);
     const cells = stripLights.map((l, i) => {
       const fig = document.createElement('figure');
       if (i === 0) fig.className = 'best';
       const c = document.createElement('canvas');
-      c.width = out;
-      c.height = out;
+      c.width = ow;
+      c.height = oh;
       c.dataset.azimuth = l.azimuthDeg.toFixed(3);
       c.dataset.polar = l.polarDeg.toFixed(3);
       c.title = `Apply: azimuth ${l.azimuthDeg.toFixed(0)}°, elevation ${l.elevationDeg}° over the region`;
       const px = shadeCrop(nrm, albedo, l.direction, { rotation: maps.rotation });
-      c.getContext('2d').putImageData(new ImageData(px, out, out), 0, 0);
+      c.getContext('2d').putImageData(new ImageData(px, ow, oh), 0, 0);
       c.addEventListener('click', () => applyLight(l));
       const cap = document.createElement('figcaption');
       cap.textContent = `${Math.round(l.azimuthDeg) % 360}°${i === 0 ? ' ★' : ''}`;
@@ -284,7 +310,8 @@ export function bindScholarTools(viewer, context) {
     strip.dataset.azimuth = best.azimuthDeg.toFixed(3);
     strip.dataset.polar = best.polarDeg.toFixed(3);
     strip.dataset.contrast = String(best.contrast);
-    viewer.setMarks([hit.point]);
+    strip.dataset.normals = String(normals.length / 3);
+    viewer.setMarks(marks);
     applyLight(stripLights[0]);
     say(`Best light: azimuth ${best.azimuthDeg.toFixed(0)}°, polar ${best.polarDeg.toFixed(0)}° (click a raking light to change).`);
   }

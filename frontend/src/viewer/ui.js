@@ -15,6 +15,7 @@ import { parseNpy } from './npy.js';
 import { fetchBytes } from './assets.js';
 import { unavailableViewReason } from './views.js';
 import { fmtUm, formatDistance, profileUncertainty } from './trust.js';
+import { describeEnhance } from './enhance.js';
 
 const $ = (id) => document.getElementById(id);
 
@@ -188,7 +189,9 @@ export function bindViewerUi(viewer, context) {
         mmPerPx,
         text: {
           Title: title,
-          Description: `${viewer.shading.mode} shading, light azimuth ${Math.round(viewer.light.azimuthDeg)}°, polar ${Math.round(viewer.light.polarDeg)}°`,
+          Description:
+            `${viewer.shading.mode} shading, light azimuth ${Math.round(viewer.light.azimuthDeg)}°, polar ${Math.round(viewer.light.polarDeg)}°` +
+            (describeEnhance(viewer.enhance) ? `; ${describeEnhance(viewer.enhance)}` : ''),
           Copyright: about.licence,
           Author: about.attribution,
           Source: permalinkUrl(),

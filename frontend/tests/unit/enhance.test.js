@@ -1,5 +1,5 @@
 import { describe, expect, it } from 'vitest';
-import { applyEnhance, checkEnhance, defaultEnhance, lensToDevice } from '../../src/viewer/enhance.js';
+import { applyEnhance, checkEnhance, defaultEnhance, describeEnhance, lensToDevice } from '../../src/viewer/enhance.js';
 
 const uniforms = () => {
   const vec = { x: 0, y: 0, set(x, y) { this.x = x; this.y = y; } };
@@ -15,6 +15,13 @@ describe('enhancements and the lens', () => {
     expect(() => checkEnhance({ normalUnsharp: NaN })).toThrow(/normalUnsharp/);
     expect(() => checkEnhance({ lens: { mode: 'curvature', x: 1, y: 1, radius: 5 } })).toThrow(/lens mode/);
     expect(() => checkEnhance({ lens: { mode: 'trust', x: 1, y: 1, radius: 0 } })).toThrow(/radius/);
+  });
+
+  it('says in a screenshot how it was enhanced', () => {
+    expect(describeEnhance(defaultEnhance())).toBe('');
+    expect(describeEnhance({ normalUnsharp: 1.5, lumaUnsharp: 0, radiusPx: 8, lens: { mode: 'trust', x: 1, y: 1, radius: 9 } })).toBe(
+      'normals unsharp-masked (k = 1.5, r = 8 px); lens: trust',
+    );
   });
 
   it('puts the lens in device pixels from the bottom-left corner', () => {

@@ -131,6 +131,14 @@ def main(argv: list[str] | None = None) -> None:
                 )
                 _wait_loaded(page, lib.models[shown])
                 page.screenshot(path=args.out / "viewer-natural.png")
+                if real:
+                    # The trust map of a real reconstruction (worker/trust.py, via derive_assets).
+                    page.locator("#mode").select_option("trust")
+                    _wait_loaded(page, lib.models[shown])
+                    page.screenshot(path=args.out / "viewer-trust-real.png")
+                    page.locator("#trust-layer").select_option("uncertainty")
+                    _wait_loaded(page, lib.models[shown])
+                    page.screenshot(path=args.out / "viewer-trust-real-uncertainty.png")
 
                 page.goto(f"{lib.url}/tablet.html?id={lib.tablets['P999001']}#m={lib.models['v2']}")
                 _wait_loaded(page, lib.models["v2"])

@@ -187,6 +187,13 @@ def test_distances_and_profiles_carry_their_uncertainty(scholar_page, tools, tru
     text = readout.inner_text()
     top = float(re.search(r"up to ([\d.]+) µm", text).group(1))
     assert top == pytest.approx(sigma_top, rel=0.1), (text, sigma_top)
+    # For the docs: a short line in the normals-only band, where the band is wide enough
+    # to see at the chart's scale (the tool is still on: two more clicks).
+    for p in [(44.5, 16.0, -1.0), (47.5, 16.0, -1.0)]:
+        page.mouse.click(*tools.screen_of(page, p))
+    page.wait_for_function(
+        "() => document.getElementById('readout').textContent.startsWith('Profile: 3.0')"
+    )
     _shot(page, "viewer-profile-band.png")
     page.keyboard.press("Escape")
 
@@ -297,6 +304,19 @@ def test_best_light_for_a_region_rakes_across_its_wedges(scholar_page, tools, tr
     third.click()
     light = page.evaluate("() => window.hammurabi.viewer.light")
     assert abs(light["azimuthDeg"] - want) < 0.01
+
+    # A rectangle between two clicks: 3 × 12 mm around the groove = 30 × 120 pixels of 0.1 mm.
+    page.locator("#light-strip-close").click()
+    page.locator("#region-shape").select_option("rectangle")
+    page.locator("#viewer").focus()
+    page.keyboard.press("w")  # off
+    page.keyboard.press("w")  # on, as a rectangle
+    for p in [(f.groove_x_mm - 1.5, 10.0, -1.0), (f.groove_x_mm + 1.5, 22.0, -1.0)]:
+        page.mouse.click(*tools.screen_of(page, p))
+    strip.wait_for(state="visible")
+    assert 3000 <= int(strip.get_attribute("data-normals")) <= 4200
+    azimuth = float(strip.get_attribute("data-azimuth"))
+    assert min(abs(azimuth - 90), abs(azimuth - 270)) <= 10, azimuth
     page.keyboard.press("Escape")
 
 
@@ -344,6 +364,15 @@ def test_lens_and_enhancements_come_back_from_the_permalink(scholar_page, tools,
     back = page.evaluate("() => window.hammurabi.viewer.enhance")
     assert back["normalUnsharp"] == 1.5 and back["lens"] == lens
     assert page.locator("#lens-on").is_checked() and page.locator("#lens-ring").is_visible()
+    # A screenshot says how it was enhanced (its PNG Description).
+    from PIL import Image
+
+    page.locator("#shot-w").fill("320")
+    page.locator("#shot-h").fill("200")
+    with page.expect_download() as dl:
+        page.locator("#screenshot").click()
+    text = Image.open(dl.value.path()).text
+    assert "normals unsharp-masked (k = 1.5, r = 8 px); lens: trust" in text["Description"], text
 
 
 def _slabs(model_dir: Path) -> None:
