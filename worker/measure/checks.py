@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from worker.measure.result import ReconstructionError
+from worker.recon.arrays import fast_median
 from worker.recon.photometric import light_directions
 
 __all__ = [
@@ -83,17 +84,32 @@ def check_saturation(bundle, frames, *, sample: int = 6) -> None:
         )
 
 
-def measured_period_px(phase_rad: np.ndarray) -> float:
+def measured_period_px(phase_rad: np.ndarray, *, row_step: int = 4) -> float:
     """Period (px) of a wrapped fringe phase map: 2π over the length of its median phase
-    gradient (wrapped neighbour differences along rows and columns, central half)."""
+    gradient (wrapped neighbour differences along rows and columns, central half).
+
+    Every `row_step`-th row of the central half and the row below it are read: a check
+    with a 25 % tolerance needs no more than ~80,000 differences, and the whole half (with
+    complex exponentials to wrap them) cost ~35 ms per set at 1.3 Mpx."""
     p = np.asarray(phase_rad, np.float32)
     rows, cols = p.shape
-    c = p[rows // 4 : rows - rows // 4, cols // 4 : cols - cols // 4]
-    gx = np.angle(np.exp(1j * (c[:, 1:] - c[:, :-1])))
-    gy = np.angle(np.exp(1j * (c[1:, :] - c[:-1, :])))
-    fx, fy = float(np.nanmedian(gx)), float(np.nanmedian(gy))
+    r0, r1, c0, c1 = rows // 4, rows - rows // 4, cols // 4, cols - cols // 4
+    top = p[r0 : r1 - 1 : row_step, c0:c1]
+    below = p[r0 + 1 : r1 : row_step, c0:c1][: top.shape[0]]
+    fx = _median_wrapped(top[:, 1:] - top[:, :-1])
+    fy = _median_wrapped(below - top)
     f = np.hypot(fx, fy)
     return float(2 * np.pi / f) if f > 0 else float("inf")
+
+
+def _median_wrapped(d: np.ndarray) -> float:
+    """Median of phase differences wrapped to [−π, π] (NaN ignored; NaN when none)."""
+    two_pi = np.float32(2 * np.pi)
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        return float("nan")
+    d -= two_pi * np.rint(d / two_pi)
+    return float(fast_median(d))
 
 
 def check_reference_periods(found: list[tuple[float, float, float]]) -> None:
