@@ -24,6 +24,7 @@ from worker.measure import Measurements, ReconstructionError, measure_bundle
 from worker.measure.checks import check_lights, check_saturation, check_surface_request
 from worker.measure.result import bundle_errors_as_reconstruction_errors
 from worker.model_dir import ModelArrays, albedo_png_bytes, write_model_dir_timed
+from worker.recon.arrays import fast_median
 from worker.recon.color import linear_to_srgb8
 from worker.recon.fusion import fuse_default, sharpen_heights
 from worker.recon.fusion_paper import fuse_paper
@@ -633,8 +634,11 @@ def _quality_maps(meas: Measurements, height, mask, on_mask: dict) -> dict[str, 
 
 
 def _median(a, mask):
+    """np.median of the finite values of `a` on the mask (by the exact radix select:
+    ~25 → 8 ms per map at 1.3 Mpx; the mask products are computed again when the guard
+    leaves pixels NaN), None without any."""
     v = a[mask & np.isfinite(a)]
-    return float(np.median(v)) if v.size else None
+    return float(fast_median(v)) if v.size else None
 
 
 def _report(meas: Measurements, mask, quality, figures, *, fusion, surface) -> dict:
