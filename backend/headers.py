@@ -26,7 +26,9 @@ from backend.settings import Settings
 CSP = "; ".join(
     (
         "default-src 'self'",
-        "script-src 'self'",
+        # 'wasm-unsafe-eval': compiling WebAssembly only (the meshoptimizer decoder of streamed
+        # tiles, frontend/src/viewer/tiles.js); JavaScript eval stays forbidden.
+        "script-src 'self' 'wasm-unsafe-eval'",
         "style-src 'self'",
         "img-src 'self' data: blob:",
         "connect-src 'self' data: blob:",
@@ -43,7 +45,9 @@ CSP = "; ".join(
 DOCS_CSP = "; ".join(
     (
         "default-src 'self'",
-        "script-src 'self'",
+        # 'wasm-unsafe-eval': compiling WebAssembly only (the meshoptimizer decoder of streamed
+        # tiles, frontend/src/viewer/tiles.js); JavaScript eval stays forbidden.
+        "script-src 'self' 'wasm-unsafe-eval'",
         "style-src 'self' 'unsafe-inline'",
         "img-src 'self' data:",
         "connect-src 'self'",

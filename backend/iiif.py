@@ -24,6 +24,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from backend.annotations import iiif_annotation, scene_annotation
+
 CONTEXT = "http://iiif.io/api/presentation/3/context.json"
 CONTEXT_3D = "http://iiif.io/api/presentation/4/context.json"
 MEDIA_TYPE = f'application/ld+json;profile="{CONTEXT}"'
@@ -71,6 +73,11 @@ LAYERS = (
     ("albedo.png", "albedo", "Albedo (reflectance, sRGB)"),
     ("normals.png", "normal", "Normal map (RGB = (n + 1) / 2)"),
 )
+# The tiles' layer of each image layer above (FaceModel.tile_services).
+TILE_LAYER = {"albedo.png": "albedo", "normals.png": "normals"}
+# Tile side of the workers' IIIF pyramids (worker/tiles/iiif.py TILE_PX): level-0 services
+# have whole-image renditions only at the sizes libvips' dzsave wrote.
+IIIF_TILE_PX = 512
 
 
 @dataclass(frozen=True)
@@ -84,6 +91,26 @@ class FaceModel:
     width_px: int | None = None
     height_px: int | None = None
     pixel_size_um: float | None = None
+    # IIIF Image API 3.0 level-0 services of the face's tiles (worker/tiles, docs/tiles.md):
+    # layer ("albedo", "normals", "height") → the service id (its info.json is id/info.json).
+    tile_services: Mapping[str, str] = field(default_factory=dict)
+    # The model's own licence and credit, when it sets them (else the manifest's apply).
+    rights: str | None = None
+    attribution: str | None = None
+    annotations: Sequence[SignAnnotation] = ()
+    # The annotations of the model with their regions in its scene (metres), 3-D manifest.
+    scene_annotations: Sequence[SignAnnotation] = ()
+
+
+@dataclass(frozen=True)
+class SignAnnotation:
+    """An annotation of a sign with its region in the face's image grid (canvas pixels)."""
+
+    number: int  # our annotation id
+    reference: str
+    reading: str | None
+    comment: str | None
+    polygon: Sequence[Sequence[float]]  # image-grid pixels (canvas) or scene metres (scene)
 
 
 @dataclass(frozen=True)
@@ -146,6 +173,45 @@ def _image(url: str, width: int | None = None, height: int | None = None) -> dic
     return image
 
 
+def image_service(service_id: str) -> dict[str, Any]:
+    """A IIIF Image API 3.0 level-0 service reference (Presentation 3 §3.4.1 `service`)."""
+    return {"id": service_id, "type": "ImageService3", "profile": "level0"}
+
+
+def level0_full_size(width_px: int, height_px: int, tile_px: int = IIIF_TILE_PX) -> tuple[int, int]:
+    """The largest whole-image rendition of a static (dzsave iiif3) pyramid: the image
+    scaled by the smallest power of two that fits it in one tile, sides rounded up."""
+    factor = 1
+    while -(-width_px // factor) > tile_px or -(-height_px // factor) > tile_px:
+        factor *= 2
+    return -(-width_px // factor), -(-height_px // factor)
+
+
+def _height_annotations(canvas_id: str, service_id: str, w: int, h: int) -> list[dict[str, Any]]:
+    """The height map as a supplementing image (not painted: it is data, 16-bit grey,
+    height_um = offset + scale·v as the tiles' index.json says), with its image service."""
+    fw, fh = level0_full_size(w, h)
+    body = _image(f"{service_id}/full/{fw},{fh}/0/default.png", fw, fh)
+    body["label"] = lang("Height map (16-bit grey PNG; µm = offset + scale · value)", "en")
+    body["service"] = [image_service(service_id)]
+    page_id = f"{canvas_id}/supplementing/1"
+    return [
+        {
+            "id": page_id,
+            "type": "AnnotationPage",
+            "items": [
+                {
+                    "id": f"{page_id}/height",
+                    "type": "Annotation",
+                    "motivation": "supplementing",
+                    "body": body,
+                    "target": canvas_id,
+                }
+            ],
+        }
+    ]
+
+
 def _renderings(urls: Mapping[str, str]) -> list[dict[str, Any]]:
     return [
         {"id": urls[name], "type": kind, "label": lang(text, "en"), "format": fmt}
@@ -182,6 +248,9 @@ def _canvas(base: str, face_model: FaceModel) -> dict[str, Any]:
                 "mapType": map_type,
             }
         ]
+        tiles = face_model.tile_services.get(TILE_LAYER[name])
+        if tiles:
+            body["service"].append(image_service(tiles))
         annotations.append(
             {
                 "id": f"{canvas_id}/annotation/{index}",
@@ -209,12 +278,50 @@ def _canvas(base: str, face_model: FaceModel) -> dict[str, Any]:
                 "physicalUnits": "mm",
             }
         ]
+    if face_model.tile_services.get("height"):
+        canvas["annotations"] = _height_annotations(
+            canvas_id, face_model.tile_services["height"], w, h
+        )
     renderings = _renderings(urls)
     if renderings:
         canvas["rendering"] = renderings
     if "thumbnail.png" in urls:
         canvas["thumbnail"] = [_image(urls["thumbnail.png"])]
+    _own_rights(canvas, face_model)
+    if face_model.annotations:
+        # Non-painting annotations (Presentation 3 §3.4 "annotations"): the signs scholars
+        # tied to regions of this face, as tagging / commenting annotations on the canvas.
+        canvas["annotations"] = [
+            {
+                "id": f"{canvas_id}/annotations",
+                "type": "AnnotationPage",
+                "label": lang("Signs linked to the transliteration", "en"),
+                "items": [
+                    iiif_annotation(
+                        annotation_id=f"{canvas_id}/annotations/{a.number}",
+                        canvas_id=canvas_id,
+                        reference=a.reference,
+                        reading=a.reading,
+                        comment=a.comment,
+                        polygon_px=a.polygon,
+                    )
+                    for a in face_model.annotations
+                ],
+            }
+        ]
     return canvas
+
+
+def _own_rights(resource: dict[str, Any], face_model: FaceModel) -> None:
+    """A model with its own licence or credit says so on its canvas or scene (Presentation 3
+    allows ``rights`` and ``requiredStatement`` on any resource)."""
+    if is_rights_uri(face_model.rights):
+        resource["rights"] = face_model.rights
+    if face_model.attribution:
+        resource["requiredStatement"] = {
+            "label": lang("Attribution", "en"),
+            "value": lang(face_model.attribution, "en"),
+        }
 
 
 def _thumbnail(face_models: Sequence[FaceModel]) -> dict[str, Any] | None:
@@ -359,6 +466,26 @@ def _scene(base: str, face_model: FaceModel) -> dict[str, Any]:
         scene["rendering"] = renderings
     if "thumbnail.png" in urls:
         scene["thumbnail"] = [_image(urls["thumbnail.png"])]
+    _own_rights(scene, face_model)
+    if face_model.scene_annotations:
+        scene["annotations"] = [
+            {
+                "id": f"{scene_id}/annotations",
+                "type": "AnnotationPage",
+                "label": lang("Signs linked to the transliteration", "en"),
+                "items": [
+                    scene_annotation(
+                        annotation_id=f"{scene_id}/annotations/{a.number}",
+                        scene_id=scene_id,
+                        reference=a.reference,
+                        reading=a.reading,
+                        comment=a.comment,
+                        polygon_scene_m=a.polygon,
+                    )
+                    for a in face_model.scene_annotations
+                ],
+            }
+        ]
     return scene
 
 

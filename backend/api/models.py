@@ -12,20 +12,24 @@ access check for records reached through a tablet.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import re
+from collections import OrderedDict
 from datetime import UTC, datetime
 from email.utils import format_datetime, parsedate_to_datetime
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Request, Response
-from fastapi.responses import JSONResponse, StreamingResponse
+from fastapi.responses import JSONResponse, RedirectResponse, StreamingResponse
 from fastapi.routing import APIRoute
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy.orm import Session
 
-from backend import crud
+from backend import crud, jobs, licences
 from backend.api.deps import OptionalUser, RowId, SessionDep, SettingsDep
 from backend.errors import error_body, forbidden, not_found, unauthorized
+from backend.schemas import LicenceFields
 from backend.storage import Storage, StorageError, storage_from_settings
 from backend.tables import Model, Scan, Tablet, User
 
@@ -97,12 +101,22 @@ class ModelOut(BaseModel):
     report: dict[str, Any]
     assets: dict[str, str]
     simulated: bool  # made from simulated scans (its report says so)
+    licence: str | None = Field(
+        default=None, description="the model's own licence (null: the tablet's)"
+    )
+    attribution: str | None = None
+    effective_licence: str | None = Field(
+        default=None,
+        description="the licence that applies: the model's, else the tablet's or institution's",
+    )
+    effective_attribution: str | None = None
 
     @classmethod
     def of(cls, model: Model, *, api_prefix: str) -> ModelOut:
         from worker.bundle import is_simulated  # as backend.uploads: loaded on first use
 
         base = f"{api_prefix}/models/{model.id}/assets"
+        applies = licences.effective(model.tablet, model)
         report = model.report or {}
         scan = report.get("scan") if isinstance(report.get("scan"), dict) else {}
         return cls(
@@ -115,7 +129,17 @@ class ModelOut(BaseModel):
             report=model.report or {},
             assets={name: f"{base}/{name}" for name in sorted(model.assets or {})},
             simulated=report.get("simulated") is True or is_simulated(scan.get("tablet")),
+            licence=model.licence,
+            attribution=model.attribution,
+            effective_licence=applies.licence,
+            effective_attribution=applies.attribution,
         )
+
+
+class ModelUpdate(LicenceFields):
+    """The model's own licence and credit line (``null``: the tablet's apply)."""
+
+    model_config = ConfigDict(extra="forbid")
 
 
 router = APIRouter(prefix="/models", tags=["models"], route_class=StorageErrorRoute)
@@ -162,6 +186,30 @@ def read_model(model: ReadableModel, settings: SettingsDep) -> ModelOut:
     return ModelOut.of(model, api_prefix=settings.api_prefix)
 
 
+@router.patch("/{model_id}", response_model=ModelOut)
+def update_model(
+    model_id: RowId,
+    body: ModelUpdate,
+    session: SessionDep,
+    settings: SettingsDep,
+    user: OptionalUser,
+) -> ModelOut:
+    """Set the model's licence URI and attribution: staff of the holding institution, admins.
+
+    A model made elsewhere may carry its maker's licence and credit; manifests, exports and
+    citations then show them for this model (backend.licences.effective)."""
+    model = session.get(Model, model_id)
+    if model is None:
+        raise not_found(f"model {model_id}", where="model_id")
+    check_tablet_access(
+        session, user, model.tablet_id, what=f"model {model_id}", where="model_id", edit=True
+    )
+    for name, value in body.model_dump(exclude_unset=True).items():
+        setattr(model, name, value)
+    session.flush()
+    return ModelOut.of(model, api_prefix=settings.api_prefix)
+
+
 _RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
 
 
@@ -199,23 +247,108 @@ def _etag_matches(header: str, etag: str) -> bool:
 
 
 @router.get("/{model_id}/assets/{name:path}")
-def read_asset(name: str, model: ReadableModel, request: Request, storage: StorageDep) -> Response:
+def read_asset(
+    name: str, model: ReadableModel, request: Request, storage: StorageDep, settings: SettingsDep
+) -> Response:
     """A file of the model version, with caching and Range support."""
-    return _serve_asset(name, model, request, storage)
+    return _serve_asset(name, model, request, storage, settings)
 
 
 @router.head("/{model_id}/assets/{name:path}")
-def head_asset(name: str, model: ReadableModel, request: Request, storage: StorageDep) -> Response:
+def head_asset(
+    name: str, model: ReadableModel, request: Request, storage: StorageDep, settings: SettingsDep
+) -> Response:
     """The headers of ``GET`` without the body."""
-    return _serve_asset(name, model, request, storage)
+    return _serve_asset(name, model, request, storage, settings)
 
 
-def _serve_asset(name: str, model: Model, request: Request, storage: Storage) -> Response:
-    info = (model.assets or {}).get(name)
+def _files_index(storage: Storage, key: str, sha256: str) -> dict[str, Any]:
+    """The parsed tiles/files.json at ``key`` (content ``sha256``), cached per process:
+    a model version's files never change, so (key, sha256) names one content forever."""
+    cached = _FILES_CACHE.get((key, sha256))
+    if cached is not None:
+        _FILES_CACHE.move_to_end((key, sha256))
+        return cached
+    try:
+        files = json.loads(b"".join(storage.open_range(key, 0, None)))
+    except ValueError:
+        files = {}
+    if not isinstance(files, dict):
+        files = {}
+    _FILES_CACHE[(key, sha256)] = files
+    while len(_FILES_CACHE) > FILES_CACHE_SIZE:
+        _FILES_CACHE.popitem(last=False)
+    return files
+
+
+FILES_CACHE_SIZE = 64
+_FILES_CACHE: OrderedDict[tuple[str, str], dict[str, Any]] = OrderedDict()
+
+
+def asset_info(model: Model, name: str, storage: Storage) -> dict[str, Any] | None:
+    """{size_bytes, sha256} of the model's file ``name``, or None. Files inside a tiles/
+    folder are looked up in that folder's files.json (``backend.jobs.recorded_assets``):
+    only names listed there (written by the worker) can be served, so no name reaches
+    outside the model's own files."""
+    assets = model.assets or {}
+    info = assets.get(name)
+    if info is not None:
+        return info
+    part = jobs.tiles_part(name)
+    if not part:
+        return None
+    files_name = name[: len(name) - len(part)] + "files.json"
+    files_info = assets.get(files_name)
+    if files_info is None:
+        return None
+    files = _files_index(storage, f"{model.storage_prefix}/{files_name}", str(files_info["sha256"]))
+    entry = files.get(part)
+    if not isinstance(entry, dict) or "size_bytes" not in entry or "sha256" not in entry:
+        return None
+    return entry
+
+
+_IIIF_LAYER = re.compile(r"^(?:.+/)?tiles/(?:.+/)?iiif/[^/]+$")
+_IIIF_INFO = re.compile(r"^(?:.+/)?tiles/(?:.+/)?iiif/[^/]+/info\.json$")
+
+
+def _iiif_info_body(
+    name: str, model: Model, storage: Storage, settings: Any, info: dict
+) -> bytes | None:
+    """An IIIF info.json with its ``id`` set to the layer's public URL (from
+    HAMMURABI_PUBLIC_URL, never the Host header: the worker writes a placeholder)."""
+    if not _IIIF_INFO.match(name):
+        return None
+    raw = b"".join(storage.open_range(f"{model.storage_prefix}/{name}", 0, None))
+    try:
+        doc = json.loads(raw)
+    except ValueError:
+        return None
+    if not isinstance(doc, dict):
+        return None
+    base = f"{settings.resolved_public_url}{settings.api_prefix}/models/{model.id}/assets"
+    doc["id"] = f"{base}/{name.rsplit('/', 1)[0]}"
+    return json.dumps(doc, indent=1).encode()
+
+
+def _serve_asset(
+    name: str, model: Model, request: Request, storage: Storage, settings: Any
+) -> Response:
+    info = asset_info(model, name, storage)
     if info is None:
+        if _IIIF_LAYER.match(name) and asset_info(model, f"{name}/info.json", storage):
+            # IIIF Image API 3.0 §2.2: the service's base URI redirects to its info.json.
+            base = f"{settings.resolved_public_url}{settings.api_prefix}"
+            return RedirectResponse(
+                f"{base}/models/{model.id}/assets/{name}/info.json", status_code=303
+            )
         raise not_found(f"asset {name!r} of model {model.id}", where="name")
     size = int(info["size_bytes"])
     etag = f'"{info["sha256"]}"'
+    body_bytes = _iiif_info_body(name, model, storage, settings, info)
+    if body_bytes is not None:
+        size = len(body_bytes)
+        etag = f'"{hashlib.sha256(body_bytes).hexdigest()}"'
     last_modified = model.created_at
     if last_modified.tzinfo is None:
         last_modified = last_modified.replace(tzinfo=UTC)
@@ -226,6 +359,10 @@ def _serve_asset(name: str, model: Model, request: Request, storage: Storage) ->
         "Cache-Control": f"{visibility}, max-age={ONE_YEAR_S}, immutable",
         "Accept-Ranges": "bytes",
     }
+    if body_bytes is not None:
+        # The id follows the configured public URL, which may change: revalidate.
+        headers["Cache-Control"] = f"{visibility}, no-cache"
+        headers["Access-Control-Allow-Origin"] = "*"  # IIIF viewers on other origins
     if _not_modified(request, etag, last_modified):
         return Response(status_code=304, headers=headers)
     media_type = CONTENT_TYPES.get(
@@ -253,6 +390,10 @@ def _serve_asset(name: str, model: Model, request: Request, storage: Storage) ->
     headers["Content-Length"] = str(end - start)
     if request.method == "HEAD":
         return Response(status_code=status, headers=headers, media_type=media_type)
+    if body_bytes is not None:
+        return Response(
+            body_bytes[start:end], status_code=status, headers=headers, media_type=media_type
+        )
     body = storage.open_range(f"{model.storage_prefix}/{name}", start, end)
     return StreamingResponse(body, status_code=status, headers=headers, media_type=media_type)
 

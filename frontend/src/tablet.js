@@ -5,8 +5,12 @@
 import * as api from './api.js';
 import { el, formatDate, showError } from './dom.js';
 import { bindViewerUi } from './viewer/ui.js';
+import { bindScholarTools } from './viewer/scholar.js';
 import { bindCite } from './viewer/citeUi.js';
+import { bindPhotoPanel } from './viewer/photos.js';
+import { bindAnnotations } from './annotationsPanel.js';
 import { decodeViewState, encodeViewState } from './viewer/permalink.js';
+import { tileOptionsFromSearch } from './viewer/tilesIndex.js';
 import { createViewer } from './viewer/viewer.js';
 
 const $ = (id) => document.getElementById(id);
@@ -38,20 +42,45 @@ let loadController = null;
 let hashTimer = null;
 let restoring = decodeViewState(window.location.hash);
 
+const tileSettings = tileOptionsFromSearch(location.search); // ?tile_budget_mb=…&tile_error_px=…
 let ui = null; // bound below; the viewer reports changes while it is being created
+let photos = null;
+let scholar = null;
 const viewer = createViewer($('viewer'), {
   onChange: () => {
     ui?.changed();
+    photos?.changed();
+    scholar?.changed();
     if (currentModel) scheduleHash();
   },
 });
+scholar = bindScholarTools(viewer, {
+  assetUrl: (name) => (currentModel?.assets?.[name] ? api.assetHref(currentModel.assets[name]) : null),
+  getPixelSizeUm: () => Number(currentModel?.report?.pixel_size_um) || null,
+  baseName: () => (tablet?.designation ?? `tablet-${tabletId}`).replace(/[^\w.-]+/g, '_'),
+  describe: describeShown,
+});
 ui = bindViewerUi(viewer, {
+  uncertainty: scholar.uncertainty,
+  onAction: scholar.onAction,
   getHeightUrl: () => (currentModel?.assets?.['height.npy'] ? api.assetHref(currentModel.assets['height.npy']) : null),
   getPixelSizeUm: () => Number(currentModel?.report?.pixel_size_um) || null,
   baseName: () => (tablet?.designation ?? `tablet-${tabletId}`).replace(/[^\w.-]+/g, '_'),
   face: () => currentModel?.report?.scan?.face ?? null,
   describe: describeShown,
   measureChanged: () => currentModel && scheduleHash(),
+});
+photos = bindPhotoPanel(viewer, {
+  controls: $('photo-controls'),
+  show: $('photo-show'),
+  swipe: $('photo-swipe'),
+  swipeAt: $('photo-swipe-at'),
+  useLight: $('photo-use-light'),
+  panel: $('photo-panel'),
+  img: $('photo-img'),
+  caption: $('photo-caption'),
+  layer: $('photo-layer'),
+  layerImg: $('photo-layer-img'),
 });
 bindCite({
   getAbout: () => {
@@ -66,6 +95,8 @@ bindCite({
   },
 });
 
+const annotations = bindAnnotations(viewer, { container: $('annotations'), canvas: $('viewer'), stopTools: () => ui.stopTools() });
+
 /** The tablet and model on screen, for citations and exported files. */
 function describeShown() {
   return {
@@ -73,12 +104,12 @@ function describeShown() {
     pNumber: tablet?.p_number ?? null,
     modelId: currentModel?.id,
     modelVersion: currentModel?.version,
-    licence: currentModel?.licence ?? tablet?.effective_licence ?? null,
-    attribution: currentModel?.attribution ?? tablet?.effective_attribution ?? null,
+    licence: currentModel?.effective_licence ?? tablet?.effective_licence ?? null,
+    attribution: currentModel?.effective_attribution ?? tablet?.effective_attribution ?? null,
   };
 }
 // For the console and for tests: the page's viewer.
-window.hammurabi = { viewer, ui };
+window.hammurabi = { viewer, ui, annotations, scholar };
 
 function scheduleHash() {
   clearTimeout(hashTimer);
@@ -211,6 +242,7 @@ async function showModel(modelId) {
   loadController = new AbortController();
   const { signal } = loadController;
   ui.stopTools();
+  scholar.stop();
   $('progress').hidden = false;
   $('progress-fill').style.width = '0%';
   $('progress-label').textContent = 'Loading the model…';
@@ -221,6 +253,7 @@ async function showModel(modelId) {
     await viewer.load({
       assets,
       signal,
+      tiles: tileSettings.options, // streamed models: GPU budget, error target
       onProgress: (fraction, label) => {
         $('progress-fill').style.width = `${Math.round(fraction * 100)}%`;
         $('progress-label').textContent = `Loading the model: ${label}`;
@@ -228,6 +261,8 @@ async function showModel(modelId) {
     });
     if (signal.aborted) return;
     currentModel = model;
+    // The photographs are an extra: the page works without them.
+    photos.setModel(model, api.assetHref).catch((err) => console.warn('photographs not shown:', err));
     // Simulated data must never pass for a measurement of the catalogued tablet.
     $('simulated-badge').hidden = !model.simulated;
     $('model-select').value = String(model.id);
@@ -236,13 +271,20 @@ async function showModel(modelId) {
     restoring = null;
     // The viewer's state names the model, so that its permalink button links this version.
     viewer.setState({ model: model.id });
+    const tileIgnored = model.assets?.['tiles/index.json'] ? tileSettings.ignored : [];
     if (restore && (restore.state.model === null || restore.state.model === model.id)) {
       const { unknownParts } = viewer.setState({ ...restore.state, model: model.id });
-      const ignored = restore.ignored.concat(unknownParts.map((n) => `face ${JSON.stringify(n)} (not in this model)`));
+      const ignored = restore.ignored.concat(
+        unknownParts.map((n) => `face ${JSON.stringify(n)} (not in this model)`),
+        tileIgnored,
+      );
       if (ignored.length) ui.setLinkNotice(`Parts of the link could not be used: ${ignored.join(', ')}.`);
       if (restore.state.measure) ui.restoreMeasure(restore.state.measure);
+    } else if (tileIgnored.length) {
+      ui.setLinkNotice(`Parts of the link could not be used: ${tileIgnored.join(', ')}.`);
     }
     renderFaces(model);
+    annotations.setModel(model);
     scheduleHash();
     $('viewer').dataset.loaded = String(model.id);
   } catch (err) {
@@ -303,6 +345,7 @@ async function main() {
   try {
     tablet = await api.getTablet(tabletId);
     renderCatalogue(tablet);
+    annotations.setTablet(tablet).catch(reportError);
     await refreshScans({ pickModel: true });
   } catch (err) {
     reportError(err);

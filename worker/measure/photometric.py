@@ -6,12 +6,18 @@ import cv2
 import numpy as np
 
 from worker.measure.frames import angle_key
+from worker.measure.result import Measurements
 from worker.recon.color import rgb_reflectance
 from worker.recon.parallel import run_blocks
 from worker.recon.photometric import light_directions, photometric_stereo
 from worker.recon.radiometry import flat_field
 
-__all__ = ["decode_with_references", "measure_color", "measure_photometric"]
+__all__ = [
+    "decode_with_references",
+    "flat_fielded_shading",
+    "measure_color",
+    "measure_photometric",
+]
 
 
 def _source_footprint(ref_stack, frames, height_um, pixel_size_um, workers=1):
@@ -85,6 +91,18 @@ def _shading(bundle, frames, stack, rho_ref, meas, kind, ref_stack=None, workers
     # cos θ: that is the reference target's n·l, not the object's.
     scale = float(np.nanpercentile(stack, 99.5)) or 1.0
     return (stack / np.float32(scale)).astype(np.float32)
+
+
+def flat_fielded_shading(
+    bundle, frames, stack, rho_ref, *, ref_stack=None, height_um=None, pixel_size_um=None
+) -> tuple[np.ndarray, list[str]]:
+    """The shading of `frames` as the photometric stage computes it (flat-fielded by their
+    reference frames, read where the light crossed the reference plane above `height_um`),
+    and the warnings it gave; for stages that run after a reconstruction (worker.photos)."""
+    meas = Measurements(pixel_size_um=float(pixel_size_um or 1.0), shape=stack.shape[1:])
+    meas.rough_height_um = height_um
+    shading = _shading(bundle, frames, stack, rho_ref, meas, "photometric", ref_stack)
+    return shading, meas.warnings
 
 
 def measure_photometric(bundle, photo, meas, rho_ref, *, stacks=None, workers: int = 1):

@@ -4,28 +4,44 @@ Fetches the latest model of each scan of the job's tablet, registers them
 (:func:`worker.register.run.register_model_dirs`) and stores the result as a tablet-level
 model (no scan) through ``backend.jobs.mark_succeeded``: its assets are ``model.glb`` (the
 one-node-per-face scene, so the viewer shows the whole tablet), ``faces/<label>/*.png`` (each
-face's full-resolution normals, blending weight and shading maps), ``merged.ply``,
-``transforms.json``, ``report.json`` and ``fatcross/*.png``.
+face's full-resolution normals blended across the seams, quality weight and shading maps),
+``faces/<label>/quality/*.npy`` (the face's quality maps), ``merged.ply``,
+``transforms.json``, ``report.json``, ``fatcross/*.png`` and ``tiles/`` (each face's
+streaming tiles and the root tileset, ``worker.tiles.tablet``).
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
+import logging
 import shutil
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 from sqlalchemy import select
 
 from backend import jobs
 from backend.licences import effective
 from backend.tables import Job, Model, Tablet
-from worker.register.io import SHADING_MAPS, RegisterInputError, write_output_dir
+from worker.assets import AssetError, derive_assets
+from worker.register.io import (
+    QUALITY_MAPS,
+    SHADING_MAPS,
+    RegisterInputError,
+    face_asset_dir,
+    write_output_dir,
+)
 from worker.register.plates import DEFAULT_LICENCE
 from worker.register.run import register_model_dirs
+from worker.tiles import TileError
+from worker.tiles.tablet import build_tablet_tiles
 
 __all__ = ["MODEL_FILES", "run_job"]
+
+log = logging.getLogger("worker.register.job")
 
 MODEL_FILES = (
     "report.json",
@@ -34,6 +50,7 @@ MODEL_FILES = (
     "mask.png",
     "albedo.png",
     *SHADING_MAPS,
+    *(f"quality/{name}" for name in QUALITY_MAPS),
 )
 
 
@@ -68,6 +85,25 @@ def plate_licence_line(tablet) -> str:
     return " · ".join(parts)
 
 
+def _tablet_tiles(out: Path, transforms: dict, progress: Callable[..., None]) -> None:
+    """Each face's tiles and the tablet's root tileset (worker.tiles.tablet); a tablet that
+    cannot be tiled is still stored (the viewer falls back to model.glb)."""
+    faces = {}
+    for label, t in transforms.get("scans", {}).items():
+        matrix = np.eye(4)
+        matrix[:3, :3] = np.asarray(t["rotation"], float)
+        matrix[:3, 3] = np.asarray(t["translation_mm"], float)
+        face_dir = Path(t["model_dir"])
+        faces[face_asset_dir(label)] = (face_dir, matrix)
+    try:
+        for face_dir, _ in faces.values():
+            if not all((face_dir / n).is_file() for n in ("curvature.png", "accessibility.png")):
+                derive_assets(face_dir)  # a face model made before these maps existed
+        build_tablet_tiles(out, faces, progress=lambda stage, f: progress("tiles", 0.8 + 0.1 * f))
+    except (TileError, AssetError) as exc:
+        log.warning("%s: no tiles: %s", out, exc)
+
+
 def run_job(job_id: int, session_factory, storage, progress: Callable[..., None]) -> str:
     """Register the tablet of job ``job_id``; "succeeded" or "failed" (with a message)."""
     with session_factory() as session:
@@ -96,6 +132,7 @@ def run_job(job_id: int, session_factory, storage, progress: Callable[..., None]
         for scan_id, prefix in models:
             d = work / f"scan-{scan_id}"
             d.mkdir()
+            (d / "quality").mkdir()
             for file in MODEL_FILES:
                 if storage.exists(f"{prefix}/{file}"):
                     storage.get_file(f"{prefix}/{file}", d / file)
@@ -108,6 +145,8 @@ def run_job(job_id: int, session_factory, storage, progress: Callable[..., None]
             return _fail(session_factory, job_id, f"registration: {exc}")
         files["model.glb"] = files["tablet.glb"]
         out = write_output_dir(work / "out", files)
+        progress("tiles", 0.8, force=True)
+        _tablet_tiles(out, json.loads(files["transforms.json"]), progress)
         progress("store", 0.9, force=True)
         with session_factory() as session:
             jobs.mark_succeeded(

@@ -14,6 +14,7 @@ import { niceStep, profileToCsv, sampleProfile } from './profile.js';
 import { parseNpy } from './npy.js';
 import { fetchBytes } from './assets.js';
 import { unavailableViewReason } from './views.js';
+import { fmtUm, formatDistance, profileUncertainty } from './trust.js';
 
 const $ = (id) => document.getElementById(id);
 
@@ -91,13 +92,23 @@ export function bindViewerUi(viewer, context) {
   }
   function showMeasure(kind, points) {
     lastMeasure = { tool: kind, points: points.map((p) => [...p]), lengthMm: distanceMm(points[0], points[1]) };
+    delete $('readout').dataset.uncertaintyMm;
     context.measureChanged?.();
-    return kind === 'profile' ? showProfile(points) : showDistance(points);
+    return kind === 'profile' ? showProfile(lastMeasure.points) : showDistance(lastMeasure.points);
   }
-  function showDistance(points) {
+  async function showDistance(points) {
+    // A streamed model: the picked points on the full-resolution heights (tiles.js).
+    const streamed = viewer.model?.tiles?.heights;
+    if (streamed) points = await streamed.onSurface(points).catch(() => points);
     const d = distanceMm(points[0], points[1]);
     setReadout(`Distance: ${d.toFixed(2)} mm`);
     $('readout').dataset.distanceMm = String(d);
+    // The ± from the model's height uncertainty (trust.js), when it has one.
+    const pm = await context.uncertainty?.distance(points).catch(() => null);
+    if (pm != null && lastMeasure?.points === points) {
+      setReadout(`Distance: ${formatDistance(d, pm)}`);
+      $('readout').dataset.uncertaintyMm = String(pm);
+    }
   }
   let heightGrid = null; // {url, grid}
   async function loadHeightGrid() {
@@ -117,12 +128,24 @@ export function bindViewerUi(viewer, context) {
   }
   async function showProfile(points) {
     try {
-      const grid = await loadHeightGrid();
-      lastProfile = sampleProfile(grid, points[0], points[1]);
+      const streamed = viewer.model?.tiles?.heights; // only the rows the line touches
+      if (streamed) {
+        setReadout('Reading heights…');
+        const part = await streamed.reader.gridForSegment(points[0], points[1], streamed.pixelSizeUm);
+        lastProfile = sampleProfile(part.grid, part.start, part.end);
+        heightGrid = { url: null, grid: { pixelSizeUm: streamed.pixelSizeUm } };
+      } else {
+        lastProfile = sampleProfile(await loadHeightGrid(), points[0], points[1]);
+      }
+      // σ_h along the line (trust.js): a band on the chart, ± in the readout and the CSV.
+      const sigmaUm = await context.uncertainty?.profile(lastProfile, points).catch(() => null);
+      if (sigmaUm) lastProfile.sigmaUm = sigmaUm;
       const chart = $('profile-chart');
       chart.replaceChildren(profileChart(lastProfile));
       $('profile-panel').hidden = false;
-      setReadout(`Profile: ${lastProfile.lengthMm.toFixed(2)} mm, ${lastProfile.heightUm.length} samples`);
+      const u = sigmaUm ? profileUncertainty(lastProfile.heightUm, sigmaUm) : null;
+      const pm = u ? `, heights ± ${fmtUm(u.medianUm)} (median; up to ${fmtUm(u.maxUm)})` : '';
+      setReadout(`Profile: ${lastProfile.lengthMm.toFixed(2)} mm, ${lastProfile.heightUm.length} samples${pm}`);
     } catch (err) {
       setReadout(`Profile: ${err.message}`);
     }
@@ -274,6 +297,7 @@ export function bindViewerUi(viewer, context) {
         setTool('profile');
         break;
       case 'cancel':
+        context.onAction?.('cancel');
         if (tool) setTool(tool);
         $('profile-panel').hidden = true;
         break;
@@ -287,7 +311,8 @@ export function bindViewerUi(viewer, context) {
         $('help').showModal();
         break;
       default:
-        return;
+        // The Read panel's tools (scholar.js): best light, section, lens.
+        if (!context.onAction?.(verb, arg)) return;
     }
     event.preventDefault();
   }

@@ -22,6 +22,9 @@ import { applyPartShading, createPartMaterial, createRelightMaterial, MODE_INDEX
 import { defaultViewState, SHADING_MODES } from './permalink.js';
 import { applyHiddenParts, createPartToggles, hiddenParts } from './parts.js';
 import { availableViews, canonicalView } from './views.js';
+import { applyEnhance, defaultEnhance } from './enhance.js';
+import { TRUST_LAYERS } from './trust.js';
+import { tilesIndexUrl } from './tilesIndex.js';
 
 const PERSPECTIVE_FOV_DEG = 30;
 
@@ -59,6 +62,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
   const hiddenMaterial = new THREE.MeshBasicMaterial({ visible: false });
   let model = null; // {mesh, assets, box, missing: Set}
   const state = defaultViewState();
+  state.enhance = defaultEnhance();
   const pendingLoads = new Set();
   let frameRequested = false;
   let disposed = false;
@@ -117,6 +121,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     camera.getWorldDirection(u.uViewDirOrtho.value).negate();
     u.uProjection.value.copy(camera.projectionMatrix);
     if (state.light.follow) updateLightDirection();
+    model?.tiles?.update(camera, renderer); // streaming: levels by screen-space error, loads
     renderer.render(scene, camera);
   }
 
@@ -196,7 +201,11 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     applyShading();
     invalidate();
     onChange('shading');
-    const kind = LAZY_KINDS[next.mode];
+    ensureKind(LAZY_KINDS[next.mode]);
+  }
+
+  /** Load a lazily loaded kind of map (modes.js' LAZY_KINDS) once, then apply it. */
+  function ensureKind(kind) {
     if (kind && model && model.assets[kind] === null) {
       const m = model;
       const job = m.assets
@@ -213,6 +222,23 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
         });
       pendingLoads.add(job);
     }
+  }
+
+  /**
+   * Unsharp masking of the normals and of the luminance, and the lens (enhance.js): shader
+   * options shared by every face. `lens`: null, or {mode, x, y, radius} in CSS pixels of the
+   * canvas (x right, y down from its top-left corner).
+   */
+  function setEnhance(next) {
+    state.enhance = applyEnhance(
+      material.uniforms,
+      { ...state.enhance, ...next },
+      { pixelRatio: renderer.getPixelRatio(), canvasHeight: canvas.clientHeight || 1 },
+      MODE_INDEX,
+    );
+    if (state.enhance.lens) ensureKind(LAZY_KINDS[state.enhance.lens.mode]);
+    invalidate();
+    onChange('enhance');
   }
 
   /** Resolves when the maps requested so far have loaded (or failed). */
@@ -245,6 +271,11 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       has = true;
     }
     u.uHasTexture.value = has;
+    // The trust map is bound whenever it is loaded: the lens may show it over another mode.
+    u.uHasTrust.value = Boolean(a?.trust);
+    if (a?.trust) u.uTrustMap.value = a.trust.texture;
+    u.uTrustLayer.value = Math.max(0, TRUST_LAYERS.indexOf(s.trustLayer));
+    model?.tiles?.applyShading(s);
     for (const [i, m] of (model?.partMaterials ?? []).entries()) applyPartShading(m, a.faces[i], s, has);
   }
 
@@ -373,7 +404,8 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
    * @param {(fraction: number, label: string) => void} [source.onProgress]
    * @param {AbortSignal} [source.signal]
    */
-  async function load({ assets, onProgress = () => {}, signal } = {}) {
+  async function load({ assets, onProgress = () => {}, signal, tiles = {} } = {}) {
+    if (tilesIndexUrl(assets)) return loadTiled(assets, { signal, ...tiles });
     const loaded = await loadModelAssets(assets, { onProgress, signal });
     if (disposed || signal?.aborted) {
       loaded.dispose();
@@ -401,11 +433,38 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     u.uHasNormalMap.value = Boolean(loaded.normals);
     u.uAlbedoMap.value = loaded.albedo ?? material.userData.blank;
     u.uHasAlbedo.value = Boolean(loaded.albedo);
+    u.uGlossMap.value = loaded.gloss?.texture ?? material.userData.blank;
+    u.uHasGlossMap.value = Boolean(loaded.gloss);
+    u.uGlossScale.value = loaded.gloss?.scale ?? 0;
+    u.uGlossExponent.value = loaded.gloss?.exponent ?? 32;
     const img = loaded.normals?.image ?? loaded.albedo?.image;
     if (img) u.uTexelSize.value.set(1 / img.width, 1 / img.height);
     u.uHeightRange.value.set(-bb.max.z, -bb.min.z);
     u.uObjectToWorld.value.setFromMatrix4(mesh.matrixWorld);
     setShading({}); // applies the mode and starts loading its maps
+    setView('obverse');
+    onChange('model');
+    return model;
+  }
+
+  /**
+   * A model with tiles/index.json: streamed (tiles.js) instead of the single mesh; the same
+   * material's light, mode and camera uniforms drive every tile.
+   * @param {{budgetMb?: number, errorTarget?: number}} options the tile cache's GPU budget
+   */
+  async function loadTiled(assets, { signal, budgetMb, errorTarget }) {
+    const { openTiledModel, tiledAssets } = await import('./tiles.js');
+    const tiled = await openTiledModel({ indexUrl: tilesIndexUrl(assets), baseMaterial: material, invalidate, budgetMb, errorTarget, signal });
+    if (disposed || signal?.aborted) {
+      tiled.dispose();
+      return null;
+    }
+    unloadModel();
+    scene.add(tiled.object);
+    const views = availableViews(tiled.kind);
+    model = { mesh: tiled.object, tiles: tiled, assets: tiledAssets(tiled), box: tiled.box, radius: tiled.radius, errors: {}, parts: null, partMaterials: [], views };
+    material.uniforms.uHeightRange.value.set(-tiled.box.max[2], -tiled.box.min[2]);
+    setShading({});
     setView('obverse');
     onChange('model');
     return model;
@@ -419,9 +478,10 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     clearOverlay();
     const u = material.uniforms;
     const blank = material.userData.blank;
-    for (const key of ['uNormalMap', 'uAlbedoMap', 'uCurvatureMap', 'uAccessMap', 'uQualityMap']) {
+    for (const key of ['uNormalMap', 'uAlbedoMap', 'uCurvatureMap', 'uAccessMap', 'uQualityMap', 'uGlossMap']) {
       u[key].value = blank;
     }
+    u.uHasGlossMap.value = false;
     model = null;
     invalidate();
   }
@@ -456,9 +516,27 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
 
   // --- picking and overlay ----------------------------------------------------------------
 
-  /** The model point under a page (CSS pixel) position: {point (mm), uv} or null. */
+  /** The model point under a page (CSS pixel) position: {point (mm), uv, part} or null
+   * (part: the whole tablet's face that was hit, else null). */
   function pick(clientX, clientY) {
-    return model ? pickPoint(canvas, camera, model.mesh, clientX, clientY) : null;
+    const hit = model ? pickPoint(canvas, camera, model.mesh, clientX, clientY) : null;
+    if (hit) hit.part = model.parts && hit.group !== null ? (model.parts.names[hit.group] ?? null) : null;
+    return hit;
+  }
+
+  /** Draw an object over the model (annotation regions); returns a function removing it. */
+  function addOverlay(object) {
+    scene.add(object);
+    invalidate();
+    return () => {
+      scene.remove(object);
+      invalidate();
+    };
+  }
+
+  /** The light's unit direction in the world frame (a face model's scan frame). */
+  function lightWorld() {
+    return material.uniforms.uLightDir.value.toArray();
   }
 
   /** Page (CSS pixel) position of a point in mm. */
@@ -472,6 +550,24 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     if (camera.isOrthographicCamera) return (2 * orthoHalfHeight) / ortho.zoom / h;
     const d = persp.position.distanceTo(controls.target);
     return (2 * d * Math.tan((PERSPECTIVE_FOV_DEG * Math.PI) / 360)) / h;
+  }
+
+  /**
+   * Add a three.js object (in model mm) to the scene, drawn with the model (e.g. a section's
+   * outline); returns a function that removes it. The caller owns and disposes the object.
+   */
+  function addOverlay(object) {
+    scene.add(object);
+    invalidate();
+    return () => {
+      scene.remove(object);
+      invalidate();
+    };
+  }
+
+  /** The camera, for tools that project or render regions (read-only use). */
+  function getCamera() {
+    return camera;
   }
 
   function clearOverlay() {
@@ -502,6 +598,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       light: { ...state.light },
       shading: { ...state.shading },
       hidden: hiddenParts(model?.parts),
+      enhance: { ...state.enhance, lens: state.enhance.lens ? { ...state.enhance.lens } : null },
     };
   }
 
@@ -520,6 +617,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     if (next.model !== undefined) state.model = next.model;
     if (next.light) setLight(next.light);
     if (next.shading) setShading(next.shading);
+    if (next.enhance) setEnhance(next.enhance);
     if (next.camera) {
       if (next.camera.projection === 'perspective') {
         camera = persp;
@@ -569,7 +667,22 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     persp.fov = (2 * Math.atan(Math.tan((PERSPECTIVE_FOV_DEG * Math.PI) / 360) * grow) * 180) / Math.PI;
     ortho.updateProjectionMatrix();
     persp.updateProjectionMatrix();
+    const u = material.uniforms;
+    const savedLens = [u.uLensCentre.value.clone(), u.uLensRadius.value];
+    const lens = state.enhance.lens;
+    if (lens) {
+      // The lens where it is on the canvas: canvas NDC → view → the shot's wider frame.
+      const ch = canvas.clientHeight || 1;
+      const nx = (2 * lens.x) / (canvas.clientWidth || 1) - 1;
+      const ny = 1 - (2 * lens.y) / ch;
+      const sx = (nx * canvasAspect) / (grow * aspect);
+      const sy = ny / grow;
+      u.uLensCentre.value.set(((sx + 1) / 2) * w, ((sy + 1) / 2) * h);
+      u.uLensRadius.value = (lens.radius * h) / (ch * grow);
+    }
     render();
+    u.uLensCentre.value.copy(savedLens[0]);
+    u.uLensRadius.value = savedLens[1];
     const blobPromise = new Promise((resolve, reject) =>
       canvas.toBlob((b) => (b ? resolve(b) : reject(new Error('the browser could not encode the PNG'))), 'image/png'),
     );
@@ -586,6 +699,11 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
   /** GPU memory in use (three.js' renderer.info.memory): geometries and textures. */
   function memory() {
     return { ...renderer.info.memory };
+  }
+
+  /** A streamed model's figures (tiles.js `stats`), or null for a single-mesh model. */
+  function streaming() {
+    return model?.tiles?.stats() ?? null;
   }
 
   function dispose() {
@@ -617,8 +735,10 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     orbitBy,
     resetView: () => setView('obverse'),
     getState,
+    lightWorld,
     setState,
     pick,
+    addOverlay,
     project,
     mmPerPixel,
     setMarks,
@@ -626,8 +746,12 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     missingMessage,
     screenshot,
     memory,
+    streaming,
     whenIdle,
     invalidate,
+    setEnhance,
+    addOverlay,
+    getCamera,
     partNames,
     setPartVisible,
     dispose,
@@ -643,6 +767,9 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     },
     get shading() {
       return { ...state.shading };
+    },
+    get enhance() {
+      return { ...state.enhance, lens: state.enhance.lens ? { ...state.enhance.lens } : null };
     },
     get projection() {
       return camera.isOrthographicCamera ? 'orthographic' : 'perspective';

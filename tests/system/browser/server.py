@@ -134,6 +134,27 @@ class Library:
         finally:
             engine.dispose()
 
+    def add_model(self, label: str, designation: str, face: str, model_dir: Path) -> int:
+        """A scan of ``face`` of tablet ``designation`` with a succeeded job storing
+        ``model_dir`` (a face model, e.g. one with tiles/), stored as the worker stores it;
+        recorded under ``label`` and returns the model's id."""
+        from backend.db import make_engine, make_sessionmaker
+        from backend.storage import LocalStorage
+
+        engine = make_engine(f"sqlite:///{self.data_dir / 'hammurabi.db'}")
+        try:
+            self.models[label] = _add_model(
+                make_sessionmaker(engine),
+                LocalStorage(self.data_dir / "storage"),
+                tablet_id=self.tablets[designation],
+                face=face,
+                label=label,
+                model_dir=model_dir,
+            )
+            return self.models[label]
+        finally:
+            engine.dispose()
+
 
 TABLETS = [
     dict(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from backend import jobs
@@ -82,6 +84,18 @@ def test_register_job_stores_a_tablet_model_with_plates(env, tmp_path):
         for d in dirs:
             assert f"faces/sim-0-{d.name}/normals.png" in model.assets, sorted(model.assets)
         assert model.report["pairs"]
+        # The whole tablet streams face by face: a root tileset over the faces' tilesets.
+        assert {n for n in model.assets if n.startswith("tiles/")} == {
+            "tiles/index.json",
+            "tiles/files.json",
+        }
+        storage = storage_from_settings(env)
+        files = json.loads(storage.read_bytes(f"{model.storage_prefix}/tiles/files.json"))
+        root = json.loads(storage.read_bytes(f"{model.storage_prefix}/tiles/3d/tileset.json"))
+        uris = sorted(c["content"]["uri"] for c in root["root"]["children"])
+        assert uris == sorted(f"../faces/sim-0-{d.name}/3d/tileset.json" for d in dirs)
+        for uri in uris:
+            assert uri.removeprefix("../") in files
 
 
 @pytest.mark.slow

@@ -1,0 +1,490 @@
+/**
+ * View-dependent streaming of a tiled model (issue 19): an OGC 3D Tiles 1.1 tileset loaded with
+ * the three.js 3D Tiles renderer (npm `3d-tiles-renderer`), meshes decoded with meshoptimizer
+ * (EXT_meshopt_compression), every tile drawn with the viewer's relighting material.
+ *
+ * A model directory with tiles has `tiles/index.json` (docs/tiles.md, the contract between the
+ * worker and this module). The renderer loads the root first (a coarse model on screen at once),
+ * then refines by screen-space error where the camera looks: a tile is replaced by its children
+ * while geometricError / (size of a screen pixel at the tile) > the renderer's target (3D Tiles
+ * 1.1, §"Geometric error"). The viewer's target is a texel size on screen (`errorTarget` px,
+ * turned into geometric error by `errorPerTexel`): with 1 px the finest level (pixel_step 1,
+ * full-resolution normals) is reached when an image pixel covers a screen pixel or more. Tiles
+ * no longer in use are kept in an LRU cache bounded in bytes (the budget) and disposed beyond.
+ *
+ * Frames: tile meshes hold scan-frame millimetres (as model.glb's mesh does) and the tileset's
+ * root.transform takes them to glTF metres (docs/tiles.md). The renderer's group carries the
+ * inverse, so the viewer's world stays the scan frame in millimetres and geometric errors stay
+ * in the tileset's metres (the renderer measures them in its group's local frame).
+ */
+import * as THREE from 'three';
+import { TilesRenderer } from '3d-tiles-renderer/three';
+import { GLTFExtensionsPlugin } from '3d-tiles-renderer/three/plugins';
+import { MeshoptDecoder } from 'meshoptimizer/decoder';
+import { createHeightRows } from './heightRows.js';
+import { applyPartShading, createPartMaterial } from './material.js';
+import { bilinearHeight } from './profile.js';
+
+/** Default GPU memory budget of the tile cache (bytes). */
+export const DEFAULT_BUDGET_MB = 256;
+/** Size on screen (CSS px) of a texel of the tiles' maps above which a tile is refined. */
+export const DEFAULT_ERROR_TARGET_PX = 1;
+
+export { tilesIndexUrl } from './tilesIndex.js';
+
+/**
+ * Check a parsed tiles/index.json against the contract; returns it, or throws naming the field.
+ * @param {any} index
+ */
+export function validateIndex(index) {
+  const where = 'tiles/index.json';
+  if (!index || typeof index !== 'object') throw new Error(`${where}: not a JSON object`);
+  if (index.version !== 1) throw new Error(`${where}: version ${index.version} is not supported (expected 1)`);
+  if (typeof index.tileset !== 'string' || !index.tileset) throw new Error(`${where}: tileset must name tileset.json`);
+  if (index.faces !== undefined) {
+    // A whole tablet: its faces' own index.json files carry the image grids.
+    const faces = Object.values(index.faces ?? {});
+    if (!faces.length || !faces.every((f) => typeof f === 'string' && f)) {
+      throw new Error(`${where}: faces must map each face to its index.json`);
+    }
+    return index;
+  }
+  for (const k of ['width_px', 'height_px', 'pixel_size_um']) {
+    if (!(Number(index[k]) > 0)) throw new Error(`${where}: ${k} must be a positive number, got ${index[k]}`);
+  }
+  return index;
+}
+
+/** Resolve a path of index.json (relative to the tiles/ folder) against the index's URL. */
+export function resolveTilesUrl(indexUrl, path) {
+  const base = new URL(indexUrl, globalThis.location?.href ?? 'http://localhost/');
+  return new URL(path, base).href;
+}
+
+/** Bytes of a texture on the GPU, with its mip chain (4/3) when it has one; RGBA8 assumed. */
+function textureBytes(t) {
+  const img = t?.image;
+  if (!img?.width) return 0;
+  const bpp = t.type === THREE.FloatType ? 16 : 4;
+  return Math.ceil(img.width * img.height * bpp * (t.generateMipmaps ? 4 / 3 : 1));
+}
+
+/**
+ * glTF loader extension: the textures a tile's material names in `extras.dh_maps` (normals,
+ * curvature, accessibility: texture indices) are not referenced by any glTF material slot,
+ * so GLTFLoader would not load them; this loads them after the root and attaches them to
+ * the material as `userData.dhTextures`.
+ */
+class DhMapsGltfExtension {
+  constructor(parser) {
+    this.parser = parser;
+    this.name = 'DH_maps';
+  }
+
+  async afterRoot(result) {
+    const jobs = [];
+    result.scene.traverse((obj) => {
+      if (!obj.isMesh) return;
+      for (const m of Array.isArray(obj.material) ? obj.material : [obj.material]) {
+        const maps = m?.userData?.dh_maps;
+        if (!maps || m.userData.dhTextures) continue;
+        const out = {};
+        m.userData.dhTextures = out;
+        for (const [kind, index] of Object.entries(maps)) {
+          if (!Number.isInteger(index)) continue;
+          jobs.push(
+            this.parser.getDependency('texture', index).then((t) => {
+              // A separate object per use: the normal map is data, never colour-managed.
+              const tex = t.clone();
+              tex.colorSpace = THREE.NoColorSpace;
+              tex.flipY = false;
+              tex.generateMipmaps = true;
+              tex.minFilter = THREE.LinearMipmapLinearFilter;
+              tex.magFilter = THREE.LinearFilter;
+              tex.wrapS = THREE.ClampToEdgeWrapping;
+              tex.wrapT = THREE.ClampToEdgeWrapping;
+              tex.needsUpdate = true;
+              out[kind] = tex;
+            }),
+          );
+        }
+      }
+    });
+    await Promise.all(jobs);
+  }
+}
+
+/** `dh_tile` of a tile: {level, x, y, px_rect, pixel_step} from the tileset tile's extras or
+ * the content's glTF extras (scene, node or mesh), or null. */
+export function tileInfo(tile, object = null) {
+  if (tile?.extras?.dh_tile) return tile.extras.dh_tile;
+  for (let o = object; o; o = o.parent) if (o.userData?.dh_tile) return o.userData.dh_tile;
+  return null;
+}
+
+/**
+ * Open a tiled model.
+ * @param {object} options
+ * @param {string} options.indexUrl URL of tiles/index.json
+ * @param {THREE.ShaderMaterial} options.baseMaterial the viewer's relighting material (its light,
+ *   mode and camera uniforms are shared by every tile's material)
+ * @param {() => void} options.invalidate ask the viewer for a frame (tiles arrived)
+ * @param {number} [options.budgetMb] GPU memory budget of the tile cache, MB
+ * @param {number} [options.errorTarget] screen-space error target, px
+ * @param {AbortSignal} [options.signal]
+ * @returns {Promise<object>} the tiled model (see the returned object's members)
+ */
+export async function openTiledModel({
+  indexUrl,
+  baseMaterial,
+  invalidate,
+  budgetMb = DEFAULT_BUDGET_MB,
+  errorTarget = DEFAULT_ERROR_TARGET_PX,
+  signal,
+}) {
+  if (!(budgetMb > 0)) throw new RangeError(`budgetMb must be > 0, got ${budgetMb}`);
+  const response = await fetch(indexUrl, { signal, credentials: 'same-origin' });
+  if (!response.ok) throw new Error(`${indexUrl}: HTTP ${response.status}`);
+  const index = validateIndex(await response.json());
+  const tilesetUrl = resolveTilesUrl(indexUrl, index.tileset);
+  const kind = index.faces ? 'tablet' : 'face';
+  let pixelSizeUm = Number(index.pixel_size_um);
+  if (kind === 'tablet') {
+    // The faces of one tablet are scanned with one pixel size; the first face's index says it.
+    const faceUrl = resolveTilesUrl(indexUrl, Object.values(index.faces)[0]);
+    const r = await fetch(faceUrl, { signal, credentials: 'same-origin' });
+    if (!r.ok) throw new Error(`${faceUrl}: HTTP ${r.status}`);
+    pixelSizeUm = Number(validateIndex(await r.json()).pixel_size_um);
+  }
+
+  const tiles = new TilesRenderer(tilesetUrl);
+  tiles.fetchOptions = { credentials: 'same-origin' };
+  tiles.errorTarget = errorTarget;
+  setBudget(tiles, budgetMb);
+  tiles.registerPlugin(
+    new GLTFExtensionsPlugin({
+      meshoptDecoder: MeshoptDecoder,
+      metadata: false,
+      rtc: false,
+      plugins: [(parser) => new DhMapsGltfExtension(parser)],
+    }),
+  );
+
+  const materials = new Set(); // live tile materials (for shading changes)
+  const perScene = new WeakMap(); // scene → {textures, materials}
+  let shading = null;
+
+  const relight = {
+    name: 'DH_RELIGHT',
+    // Replace each tile's glTF material by a relighting material sharing the base's light, mode
+    // and camera uniforms, fed with this tile's albedo and its full-resolution maps.
+    processTileModel(scene, tile) {
+      const own = { textures: new Set(), originals: new Set() };
+      scene.updateMatrixWorld(true);
+      scene.traverse((obj) => {
+        if (!obj.isMesh) return;
+        const gm = Array.isArray(obj.material) ? obj.material[0] : obj.material;
+        const maps = gm?.userData?.dhTextures ?? {};
+        const albedo = gm?.map ?? null;
+        if (albedo) albedo.colorSpace = THREE.SRGBColorSpace;
+        for (const t of [albedo, maps.normals, maps.curvature, maps.accessibility]) if (t) own.textures.add(t);
+        for (const m of Array.isArray(obj.material) ? obj.material : [obj.material]) own.originals.add(m);
+        if (!obj.geometry.attributes.normal) obj.geometry.computeVertexNormals();
+        // Object-space normals are in the mesh's frame (scan frame); the world is that frame
+        // for a face (identity), a face's rotation into the tablet frame for a whole tablet.
+        const toWorld = new THREE.Matrix4().multiplyMatrices(tiles.group.matrix, obj.matrixWorld);
+        const rotation = new THREE.Matrix3().setFromMatrix4(new THREE.Matrix4().extractRotation(toWorld));
+        const m = createPartMaterial(
+          baseMaterial,
+          { rotation, normals: maps.normals ?? null, albedo },
+          { seamDepthMm: 0 },
+        );
+        m.userData.face = {
+          curvature: maps.curvature ? curvatureLayers(maps.curvature) : [],
+          accessibility: maps.accessibility ?? null,
+        };
+        m.userData.tile = tileInfo(tile, obj);
+        if (shading) applyPartShading(m, m.userData.face, shading, false);
+        obj.material = m;
+        materials.add(m);
+      });
+      perScene.set(scene, own);
+    },
+    // The renderer counts geometry and the textures it finds on materials; the relighting
+    // material holds its textures in uniforms, so count them here (the LRU's accounting).
+    calculateBytesUsed(tile, scene) {
+      const own = scene && perScene.get(scene);
+      if (!own) return 0;
+      let bytes = 0;
+      for (const t of own.textures) bytes += textureBytes(t);
+      return bytes;
+    },
+  };
+  tiles.registerPlugin(relight);
+
+  tiles.addEventListener('dispose-model', ({ scene }) => {
+    scene.traverse((obj) => {
+      if (obj.isMesh && materials.has(obj.material)) materials.delete(obj.material);
+    });
+    const own = perScene.get(scene);
+    if (!own) return;
+    for (const t of own.textures) {
+      t.dispose();
+      if (typeof ImageBitmap !== 'undefined' && t.image instanceof ImageBitmap) t.image.close?.();
+    }
+    for (const m of own.originals) m.dispose();
+    perScene.delete(scene);
+  });
+  for (const type of ['needs-render', 'needs-update', 'load-model', 'tiles-load-end']) {
+    tiles.addEventListener(type, () => invalidate());
+  }
+
+  const rootLoaded = new Promise((resolve, reject) => {
+    tiles.addEventListener('load-root-tileset', () => resolve());
+    tiles.addEventListener('load-error', ({ error, url }) => {
+      if (!tiles.rootTileset) reject(new Error(`${url}: ${error?.message ?? error}`));
+    });
+  });
+  // The renderer needs update() calls to start loading; a camera-less one fetches the root.
+  tiles.update();
+  await abortable(rootLoaded, signal, () => tiles.dispose());
+
+  // Undo the tileset frame: the GLBs hold scan-frame mm under a node that cancels the
+  // renderer's y-up → z-up rotation, so the root's transform applies to scan coordinates
+  // (docs/tiles.md); the group carries its inverse and the world is the scan frame (a face)
+  // or the tablet frame (a whole tablet: each face's tileset adds its scan → tablet transform).
+  const rootTransform = new THREE.Matrix4();
+  if (Array.isArray(tiles.root?.transform)) rootTransform.fromArray(tiles.root.transform);
+  tiles.group.matrixAutoUpdate = false;
+  tiles.group.matrix.copy(rootTransform).invert();
+  tiles.group.updateMatrixWorld(true);
+
+  const worldPerTilesetUnit = new THREE.Vector3().setFromMatrixScale(tiles.group.matrix).x;
+
+  const box = new THREE.Box3();
+  if (!tiles.getBoundingBox(box)) {
+    // No bounding volume usable as a box: the image grid (x, y) and a nominal depth.
+    const w = ((index.width_px ?? 1000) * pixelSizeUm) / 1000;
+    const h = ((index.height_px ?? 1000) * pixelSizeUm) / 1000;
+    box.set(new THREE.Vector3(0, 0, -w / 4), new THREE.Vector3(w, h, 0));
+  } else {
+    box.applyMatrix4(tiles.group.matrix);
+  }
+  const sphere = box.getBoundingSphere(new THREE.Sphere());
+
+  // A whole tablet's heights are per face, each on its own grid: not read here (yet).
+  const heights = kind === 'face' && index.height_raw ? streamedHeights(index, indexUrl) : null;
+  let cameraInUse = null;
+  let disposed = false;
+
+  function curvatureLayers(texture) {
+    // One curvature map per tile; the coarser scales are its mip levels (as assets.js does for
+    // a single map): smoothing over 4 and 16 pixels of this tile's level.
+    return [
+      { texture, lod: 0, label: 'curvature' },
+      { texture, lod: 2, label: 'curvature, smoothed over 4 px' },
+      { texture, lod: 4, label: 'curvature, smoothed over 16 px' },
+    ];
+  }
+
+  return {
+    index,
+    /** 'face' (one scan's image grid) or 'tablet' (a whole tablet's faces, external tilesets). */
+    kind,
+    tiles,
+    /** The Object3D to add to the scene. */
+    object: tiles.group,
+    /** World (scan-frame mm) bounding box of the tileset. */
+    box: { min: box.min.toArray(), max: box.max.toArray() },
+    radius: sphere.radius || 1,
+    /** Full-resolution heights (height.f32 by HTTP Range), or null: {reader, pixelSizeUm, onSurface}. */
+    heights,
+    /** Call before each frame: culls, picks levels by screen-space error, queues loads. */
+    update(camera, renderer) {
+      if (disposed) return;
+      if (cameraInUse !== camera) {
+        if (cameraInUse) tiles.deleteCamera(cameraInUse);
+        tiles.setCamera(camera);
+        cameraInUse = camera;
+      }
+      tiles.setResolutionFromRenderer(camera, renderer);
+      camera.updateMatrixWorld();
+      // 3d-tiles-renderer 0.5.3 measures an orthographic camera's pixel in WORLD units (mm
+      // here) but geometric errors in its group's frame (the tileset's metres), while the
+      // perspective path converts; scale the target so both compare like with like.
+      const target = errorTarget * errorPerTexel(tiles, pixelSizeUm);
+      tiles.errorTarget = camera.isOrthographicCamera ? target / worldPerTilesetUnit : target;
+      tiles.update();
+    },
+    /** Apply a shading state ({mode, curvatureScale}) to every tile, now and on load. */
+    applyShading(s) {
+      shading = { ...s };
+      for (const m of materials) applyPartShading(m, m.userData.face, shading, false);
+    },
+    setBudgetMb(mb) {
+      if (!(mb > 0)) throw new RangeError(`budget must be > 0 MB, got ${mb}`);
+      setBudget(tiles, mb);
+      invalidate();
+    },
+    /** Streaming figures: bytes in the cache vs the budget, tiles by state, deepest level shown. */
+    stats() {
+      let maxLevel = -1;
+      let minStep = Infinity;
+      let visibleTiles = 0;
+      tiles.group.traverse((o) => {
+        if (!o.isMesh || !o.visible || !materials.has(o.material)) return;
+        visibleTiles++;
+        const info = o.material.userData.tile;
+        if (info) {
+          maxLevel = Math.max(maxLevel, info.level);
+          minStep = Math.min(minStep, info.pixel_step);
+        }
+      });
+      const s = tiles.stats;
+      return {
+        bytesUsed: tiles.lruCache.cachedBytes,
+        budgetBytes: tiles.budgetBytes,
+        queued: s.queued,
+        downloading: s.downloading,
+        parsing: s.parsing,
+        loaded: s.loaded,
+        failed: s.failed,
+        visibleTiles,
+        maxLevel,
+        minPixelStep: Number.isFinite(minStep) ? minStep : null,
+        loadProgress: tiles.loadProgress,
+        idle: s.queued + s.downloading + s.parsing === 0,
+      };
+    },
+    /**
+     * The tile a picked object (viewer.pick(x, y).object) belongs to: its dh_tile, whether it
+     * is a leaf, its screen-space error at the last update and whether that is within the
+     * target (`sufficient`: the renderer wants nothing finer there), or null.
+     */
+    describeTile(object) {
+      const tile = object?.userData?.tile;
+      if (!tile) return null;
+      const info = object.material?.userData?.tile ?? tileInfo(tile, object);
+      const leaf = !tile.children?.length || tile.geometricError === 0;
+      const error = tile.traversal?.error ?? Infinity;
+      return { ...(info ?? {}), leaf, error, sufficient: leaf || error <= tiles.errorTarget };
+    },
+    /** Whether the material is one of this model's tile materials. */
+    has(material) {
+      return materials.has(material);
+    },
+    dispose() {
+      if (disposed) return;
+      disposed = true;
+      tiles.dispose(); // disposes every loaded tile (dispose-model frees our textures)
+      materials.clear();
+    },
+  };
+}
+
+/**
+ * Geometric error per texel of the tiles' textures: the worker gives each tile the spacing of
+ * its mesh as geometricError (docs/tiles.md: 4 texels), while what must stay under a screen
+ * pixel is a texel of the normal map. The viewer's error target is in texels on screen, so
+ * the renderer's target is that times this ratio: geometricError / (pixel_step · pixel size),
+ * read from the first tile that carries dh_tile (the root of a face; a face's root under a
+ * whole tablet's), 1 until one is known.
+ */
+function errorPerTexel(tiles, pixelSizeUm) {
+  if (tiles.dhErrorPerTexel) return tiles.dhErrorPerTexel;
+  const stack = tiles.root ? [tiles.root] : [];
+  for (let n = 0; stack.length && n < 64; n++) {
+    const t = stack.shift();
+    const info = t.extras?.dh_tile;
+    if (info?.pixel_step > 0 && t.geometricError > 0) {
+      tiles.dhErrorPerTexel = t.geometricError / (info.pixel_step * pixelSizeUm * 1e-6);
+      return tiles.dhErrorPerTexel;
+    }
+    stack.push(...(t.children ?? []));
+  }
+  return 1;
+}
+
+/**
+ * The viewer's `model.assets` record for a tiled model, shaped like assets.js' (modes.js reads
+ * it for the "missing map" notices): every tile carries its albedo, normals, curvature and
+ * accessibility (the contract), so nothing loads lazily; the per-scan quality maps are
+ * full-image float arrays and are not streamed.
+ */
+export function tiledAssets(tiled) {
+  const tile = 'tiles (per tile)';
+  return {
+    names: { curvature: [tile], accessibility: tile, quality: [], height: null },
+    normals: true,
+    albedo: true,
+    curvature: [],
+    accessibility: true,
+    quality: [],
+    faces: [],
+    parts: [],
+    ensure: () => Promise.resolve(),
+    dispose: () => tiled.dispose(),
+  };
+}
+
+/**
+ * The measuring tools' access to `tiles/height.f32` (index.json `height_raw`).
+ * `onSurface(points)` puts picked points (mm) on the full-resolution surface: z = −h(x, y)/1000
+ * with h bilinear at the point's pixel (SCAN_BUNDLE.md: pixel (r, c) at (c·s, r·s) µm), so a
+ * distance picked on a coarse tile is still measured on the full-resolution surface; a point
+ * over a hole (NaN) keeps the mesh's z.
+ */
+function streamedHeights(index, indexUrl) {
+  const raw = index.height_raw;
+  if (raw.dtype !== '<f4' || raw.order !== 'row-major' || !Array.isArray(raw.shape) || raw.shape.length !== 2) {
+    throw new Error(`tiles/index.json: height_raw must be <f4, row-major, shape [H, W]; got ${JSON.stringify(raw)}`);
+  }
+  const [rows, cols] = raw.shape;
+  const reader = createHeightRows({ url: resolveTilesUrl(indexUrl, raw.path), rows, cols });
+  const pixelSizeUm = Number(index.pixel_size_um);
+  async function onSurface(points) {
+    return Promise.all(
+      points.map(async (p) => {
+        const c = (p[0] * 1000) / pixelSizeUm;
+        const r = (p[1] * 1000) / pixelSizeUm;
+        const r0 = Math.max(0, Math.min(rows - 2, Math.floor(r)));
+        const two = await reader.readRows(r0, r0 + 2);
+        const h = bilinearHeight(two, cols, Math.min(2, rows - r0), c, r - r0);
+        return Number.isFinite(h) ? [p[0], p[1], -h / 1000] : [...p];
+      }),
+    );
+  }
+  return { reader, pixelSizeUm, onSurface };
+}
+
+/**
+ * The LRU cache's limits for a budget. The renderer stops requesting tiles once its cache is
+ * "full" (maxBytesSize) but lets the downloads already in flight land, and never evicts tiles
+ * in use; so the cache is told 75 % of the budget and at most MAX_IN_FLIGHT downloads run at
+ * once, keeping the remaining quarter for what lands after the cache filled.
+ */
+const SOFT_FRACTION = 0.75;
+const MAX_IN_FLIGHT = 6;
+
+function setBudget(tiles, mb) {
+  const bytes = mb * 1024 * 1024;
+  tiles.lruCache.maxBytesSize = SOFT_FRACTION * bytes;
+  tiles.lruCache.minBytesSize = 0.6 * bytes; // unused tiles are unloaded down to this
+  tiles.budgetBytes = bytes;
+  // The renderer's default queue and cache are shared module objects; the viewer shows one
+  // tiled model at a time, so setting them here is setting them for that model.
+  tiles.downloadQueue.maxJobsPerOrigin = MAX_IN_FLIGHT;
+}
+
+function abortable(promise, signal, onAbort) {
+  if (!signal) return promise;
+  return new Promise((resolve, reject) => {
+    const abort = () => {
+      onAbort();
+      reject(new DOMException('aborted', 'AbortError'));
+    };
+    if (signal.aborted) return abort();
+    signal.addEventListener('abort', abort, { once: true });
+    promise.then(resolve, reject);
+  });
+}

@@ -1,0 +1,171 @@
+"""Tiles of a registered whole tablet (docs/tiles.md, "Whole tablet").
+
+`tiles/faces/<label>/` holds each face's tiles exactly as a face model's `tiles/` (built
+from the face's model directory), except that its tileset's root.transform is the face's
+scan → tablet transform (mm, transforms.json); `tiles/3d/tileset.json` is the root: its
+root.transform takes the tablet frame (mm) to glTF metres, +Y up (model.glb's root node),
+and its children reference the faces' tilesets (3D Tiles 1.1 "external tilesets"), so the
+whole tablet streams face by face. `tiles/index.json` (written last) lists the faces'
+index.json files; `tiles/files.json` every file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from worker.durable import replace_dir_atomic, write_file_atomic
+from worker.recon.gltf_frame import gltf_root_matrix
+from worker.recon.shading_maps import normals_rgb8
+from worker.tiles.build import TileError, fill_tiles, glb_root_matrix
+
+__all__ = ["build_tablet_tiles", "transformed_box"]
+
+
+def transformed_box(box: list[float], matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned bounds (lo, hi) of a 3D Tiles box's corners after the 4×4 `matrix`."""
+    c = np.array(box[:3])
+    axes = np.array(box[3:]).reshape(3, 3)
+    signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
+    corners = c + signs @ axes
+    moved = corners @ np.asarray(matrix)[:3, :3].T + np.asarray(matrix)[:3, 3]
+    return moved.min(axis=0), moved.max(axis=0)
+
+
+def _face_arrays(face_dir: Path) -> dict:
+    """What fill_tiles needs from a face model directory (normals.png made from normals.npy
+    when the directory has none, as the registration job fetches it)."""
+    try:
+        report = json.loads((face_dir / "report.json").read_text(encoding="utf-8"))
+        pixel_size_um = float(report["pixel_size_um"])
+        height = np.load(face_dir / "height.npy", mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise TileError(f"model directory {face_dir}: {exc}") from None
+
+    def read(name: str, flags: int) -> np.ndarray:
+        img = cv2.imread(str(face_dir / name), flags)
+        if img is None:
+            raise TileError(f"{face_dir}: {name} is missing or unreadable")
+        return np.ascontiguousarray(img[..., ::-1]) if img.ndim == 3 else img
+
+    if (face_dir / "normals.png").is_file():
+        normals = read("normals.png", cv2.IMREAD_COLOR)
+    else:
+        normals = normals_rgb8(np.load(face_dir / "normals.npy", allow_pickle=False))
+    return {
+        "height_um": height,
+        "albedo": read("albedo.png", cv2.IMREAD_COLOR),
+        "normals_rgb8": normals,
+        "curvature8": read("curvature.png", cv2.IMREAD_GRAYSCALE),
+        "accessibility8": read("accessibility.png", cv2.IMREAD_GRAYSCALE),
+        "pixel_size_um": pixel_size_um,
+    }
+
+
+def build_tablet_tiles(
+    model_dir: str | os.PathLike,
+    faces: Mapping[str, tuple[Path, np.ndarray]],
+    *,
+    progress: Callable[[str, float], None] | None = None,
+) -> dict:
+    """Build `model_dir/tiles/` of a whole-tablet model: `faces` maps each face's folder
+    name (``faces/<label>`` relative to tiles/) to (its model directory, its 4×4 scan →
+    tablet transform in mm). Returns index.json's dict."""
+    model_dir = Path(model_dir)
+    progress = progress or (lambda stage, fraction: None)
+    if not faces:
+        raise TileError("a whole tablet needs at least one face to tile")
+    arrays = {folder: (_face_arrays(d), np.asarray(t, float)) for folder, (d, t) in faces.items()}
+    written: dict = {}
+
+    def fill(tmp: Path) -> None:
+        t0 = time.perf_counter()
+        children, indexes = [], {}
+        lo_all, hi_all = None, None
+        for k, (folder, (face, matrix)) in enumerate(arrays.items()):
+            sub = tmp / folder
+            sub.mkdir(parents=True)
+
+            def face_progress(stage: str, f: float, k=k) -> None:
+                progress(stage, (k + f) / len(arrays))
+
+            indexes[folder] = fill_tiles(sub, **face, root_matrix=matrix, progress=face_progress)
+            face_set = json.loads((sub / "3d" / "tileset.json").read_text())
+            lo, hi = transformed_box(face_set["root"]["boundingVolume"]["box"], matrix)
+            lo_all = lo if lo_all is None else np.minimum(lo_all, lo)
+            hi_all = hi if hi_all is None else np.maximum(hi_all, hi)
+            children.append(
+                {
+                    "boundingVolume": {"box": _box(lo, hi)},
+                    "geometricError": face_set["geometricError"],
+                    "refine": "REPLACE",
+                    "content": {"uri": f"../{folder}/3d/tileset.json"},
+                    "extras": {"dh_face": folder.rsplit("/", 1)[-1]},
+                }
+            )
+        root_matrix = glb_root_matrix(model_dir / "model.glb")
+        if root_matrix is None:
+            root_matrix = gltf_root_matrix(lo_all, hi_all)
+        diagonal_m = float(np.linalg.norm(hi_all - lo_all)) / 1000.0
+        tileset = {
+            "asset": {
+                "version": "1.1",
+                "generator": "Digital Hammurabi worker.tiles",
+                "extras": {
+                    "frame": "root.transform takes the tablet frame (mm, transforms.json) "
+                    "to glTF metres, +Y up, as model.glb's root node; each face's tileset "
+                    "carries its scan -> tablet transform"
+                },
+            },
+            "geometricError": diagonal_m,
+            "root": {
+                "transform": [float(v) for v in np.asarray(root_matrix, float).T.reshape(-1)],
+                "boundingVolume": {"box": _box(lo_all, hi_all)},
+                "geometricError": max(c["geometricError"] for c in children),
+                "refine": "REPLACE",
+                "children": children,
+            },
+        }
+        (tmp / "3d").mkdir()
+        (tmp / "3d" / "tileset.json").write_text(json.dumps(tileset), encoding="utf-8")
+        files, total = {}, 0
+        for path in sorted(tmp.rglob("*")):
+            if path.is_file():
+                data = path.read_bytes()
+                rel = path.relative_to(tmp).as_posix()
+                files[rel] = {"size_bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+                total += len(data)
+        write_file_atomic(tmp / "files.json", json.dumps(files, separators=(",", ":")).encode())
+        stats = {
+            "seconds": round(time.perf_counter() - t0, 3),
+            "bytes": total,
+            "tiles_3d": sum(i["stats"]["tiles_3d"] for i in indexes.values()),
+            "tiles_iiif": sum(i["stats"]["tiles_iiif"] for i in indexes.values()),
+            "levels": max(i["stats"]["levels"] for i in indexes.values()),
+        }
+        index = {
+            "version": 1,
+            "tileset": "3d/tileset.json",
+            "faces": {folder: f"{folder}/index.json" for folder in indexes},
+            "files": "files.json",
+            "stats": stats,
+        }
+        write_file_atomic(tmp / "index.json", json.dumps(index, indent=1).encode())
+        written["index"] = index
+
+    replace_dir_atomic(model_dir / "tiles", fill)
+    progress("tiles: done", 1.0)
+    return written["index"]
+
+
+def _box(lo: np.ndarray, hi: np.ndarray) -> list[float]:
+    c = (lo + hi) / 2.0
+    h = np.maximum((hi - lo) / 2.0, 1e-6)
+    return [float(v) for v in (*c, h[0], 0, 0, 0, h[1], 0, 0, 0, h[2])]
