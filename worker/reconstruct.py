@@ -11,8 +11,6 @@ import argparse
 import json
 import sys
 
-from tqdm import tqdm
-
 from worker.pipeline import FUSIONS, SURFACES, ReconstructionError, reconstruct_bundle
 
 
@@ -33,21 +31,28 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
 
-    bar = tqdm(total=100, file=sys.stderr, disable=args.quiet, unit="%", leave=False)
+    if args.quiet:  # not even imported (tqdm and its monitor thread cost ~0.1 s)
+        bar = progress = None
+    else:
+        from tqdm import tqdm
 
-    def progress(stage: str, fraction: float) -> None:
-        bar.set_description(stage)
-        bar.update(max(0, round(100 * fraction) - bar.n))
+        bar = tqdm(total=100, file=sys.stderr, unit="%", leave=False)
+
+        def progress(stage: str, fraction: float) -> None:
+            bar.set_description(stage)
+            bar.update(max(0, round(100 * fraction) - bar.n))
 
     try:
         report = reconstruct_bundle(
             args.bundle, args.outdir, fusion=args.fusion, surface=args.surface, progress=progress
         )
     except ReconstructionError as exc:
-        bar.close()
+        if bar is not None:
+            bar.close()
         print(f"cannot reconstruct {args.bundle}: {exc}", file=sys.stderr)
         return 2
-    bar.close()
+    if bar is not None:
+        bar.close()
     for w in report["warnings"]:
         print(f"warning: {w}", file=sys.stderr)
     summary = {

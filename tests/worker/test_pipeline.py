@@ -129,6 +129,11 @@ def test_the_manifest_psf_is_used_and_reported(tmp_path):
     entry = report["refinements"]["guard"]
     assert int((guard == 1).sum()) == entry["pixels_beyond_fringe_bound"]
     assert int((guard == 2).sum()) == entry["pixels_outside_neighbourhood"]
+    # Cliff pixels whose side nothing told are NaN, off the mask, flagged all the same.
+    assert int((guard == 3).sum()) == entry["cliff_pixels_side_unknown"]
+    height = np.load(tmp_path / "m" / "height.npy")
+    assert np.isnan(height[guard == 3]).all()
+    assert "_decided" not in report["refinements"]["walls"]
 
 
 def test_no_output_height_breaks_the_guard_rule(tmp_path):

@@ -6,9 +6,12 @@ with it) instead of letting a stage fail with a traceback or write a surface of 
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from worker.measure.result import ReconstructionError
+from worker.recon.arrays import fast_median
 from worker.recon.photometric import light_directions
 
 __all__ = [
@@ -69,12 +72,19 @@ def check_saturation(bundle, frames, *, sample: int = 6) -> None:
         return
     top = 2 ** int(bundle.manifest.camera.bit_depth) - 1
     picks = [obj[i] for i in np.unique(np.linspace(0, len(obj) - 1, sample).round().astype(int))]
-    shares = []
-    for f in picks:
-        raw = bundle.raw(f)
+
+    def share(frame) -> float | None:
+        raw = bundle.raw(frame)
         if raw.dtype.kind == "f":  # linear radiance: no top code
-            return
-        shares.append(float(np.mean(raw >= top)))
+            return None
+        return float(np.count_nonzero(raw >= top)) / raw.size
+
+    # Decoded two at a time (the reader is thread-safe; PNG decoding releases the GIL):
+    # the check runs before anything else, with the second core idle.
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        shares = list(pool.map(share, picks))
+    if any(v is None for v in shares):
+        return
     if min(shares) >= _SATURATED_SHARE:
         raise ReconstructionError(
             f"object frames saturated: in each of {len(picks)} sampled frames at least "
@@ -83,17 +93,32 @@ def check_saturation(bundle, frames, *, sample: int = 6) -> None:
         )
 
 
-def measured_period_px(phase_rad: np.ndarray) -> float:
+def measured_period_px(phase_rad: np.ndarray, *, row_step: int = 4) -> float:
     """Period (px) of a wrapped fringe phase map: 2π over the length of its median phase
-    gradient (wrapped neighbour differences along rows and columns, central half)."""
+    gradient (wrapped neighbour differences along rows and columns, central half).
+
+    Every `row_step`-th row of the central half and the row below it are read: a check
+    with a 25 % tolerance needs no more than ~80,000 differences, and the whole half (with
+    complex exponentials to wrap them) cost ~35 ms per set at 1.3 Mpx."""
     p = np.asarray(phase_rad, np.float32)
     rows, cols = p.shape
-    c = p[rows // 4 : rows - rows // 4, cols // 4 : cols - cols // 4]
-    gx = np.angle(np.exp(1j * (c[:, 1:] - c[:, :-1])))
-    gy = np.angle(np.exp(1j * (c[1:, :] - c[:-1, :])))
-    fx, fy = float(np.nanmedian(gx)), float(np.nanmedian(gy))
+    r0, r1, c0, c1 = rows // 4, rows - rows // 4, cols // 4, cols - cols // 4
+    top = p[r0 : r1 - 1 : row_step, c0:c1]
+    below = p[r0 + 1 : r1 : row_step, c0:c1][: top.shape[0]]
+    fx = _median_wrapped(top[:, 1:] - top[:, :-1])
+    fy = _median_wrapped(below - top)
     f = np.hypot(fx, fy)
     return float(2 * np.pi / f) if f > 0 else float("inf")
+
+
+def _median_wrapped(d: np.ndarray) -> float:
+    """Median of phase differences wrapped to [−π, π] (NaN ignored; NaN when none)."""
+    two_pi = np.float32(2 * np.pi)
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        return float("nan")
+    d -= two_pi * np.rint(d / two_pi)
+    return float(fast_median(d))
 
 
 def check_reference_periods(found: list[tuple[float, float, float]]) -> None:

@@ -5,7 +5,7 @@ edge, with a true slope under `max_slope_deg`. Heights are compared after removi
 offset (the reference plane of a scan is only known to the fringes' accuracy, and baselines
 from normals alone have none). Wedge depth: mean rim height minus bottom height, both read
 bilinearly at the points of gt/wedges.json from the reconstructed and the true height maps,
-for the wedges whose bottom pixel was reconstructed.
+for the wedges whose bottom pixel and rim points' pixels were reconstructed.
 """
 
 from __future__ import annotations
@@ -77,12 +77,21 @@ def evaluate(
     ang = ang[np.isfinite(ang)]
     h_fill = np.where(np.isfinite(height_um), height_um, np.nanmedian(height_um))
     depth_err = []
+    rows, cols = gm.shape
+
+    def reconstructed(p):
+        r, c = int(round(p["row"])), int(round(p["col"]))
+        return 0 <= r < rows and 0 <= c < cols and bool(recon[r, c])
+
     for w in wedges:
         b = w["bottom"]
         r, c = int(round(b["row"])), int(round(b["col"]))
-        # Only wedges the chain reconstructed: elsewhere h_fill is the median height, and
-        # the "depth error" would measure the wedge itself.
-        if not (0 <= r < gm.shape[0] and 0 <= c < gm.shape[1]) or not (inner[r, c] and recon[r, c]):
+        # Only wedges the chain reconstructed, bottom and rim points: elsewhere h_fill is
+        # the median height, and the "depth error" would measure the wedge itself (or a
+        # rim read at the tablet's median height).
+        if not (0 <= r < rows and 0 <= c < cols) or not (inner[r, c] and recon[r, c]):
+            continue
+        if not all(reconstructed(p) for p in w["rim"]):
             continue
         depth_err.append(abs(wedge_depth_um(h_fill, w) - wedge_depth_um(gt_height_um, w)))
     return {

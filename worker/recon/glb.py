@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-import pygltflib
 
 from worker.recon.gltf_frame import gltf_root_matrix, root_node
 from worker.recon.mesh import grid_mesh, vertex_normals
@@ -149,6 +148,8 @@ def glb_bytes(
     albedo_png: albedo_srgb8's PNG encoding (as `cv2.imencode` gives it) when the caller
     has it already (the model directory's albedo.png); encoded here otherwise.
     """
+    import pygltflib  # on first use: ~0.1 s of the CLI's start-up
+
     h, w = np.shape(height_um)
     step = decimation_step((h, w), max_triangles)
     mesh = grid_mesh(height_um, mask, pixel_size_um=pixel_size_um, step=step)

@@ -17,8 +17,12 @@ back to scan coordinates (undo the root's matrix).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import pygltflib
+
+if TYPE_CHECKING:
+    import pygltflib
 
 __all__ = [
     "EXTRAS_KEY",
@@ -64,6 +68,8 @@ def _column_major(matrix: np.ndarray) -> list[float]:
 
 def root_node(matrix: np.ndarray, children: list[int], *, name: str) -> pygltflib.Node:
     """The one root node carrying the scan → glTF transform."""
+    import pygltflib  # on first use: ~0.1 s of the CLI's start-up
+
     return pygltflib.Node(
         name=name, matrix=_column_major(matrix), children=children, extras=scan_frame_extras(matrix)
     )
@@ -73,6 +79,8 @@ def wrap_scene_in_gltf_frame(glb: bytes, *, name: str = "tablet") -> bytes:
     """Put every root node of a scan-frame (mm) GLB's default scene under one new root node
     carrying the scan → glTF transform; returns the new GLB. The bounding box is that of the
     POSITION accessors' min/max after each node's own transform (what trimesh writes)."""
+    import pygltflib  # on first use: ~0.1 s of the CLI's start-up
+
     gltf = pygltflib.GLTF2.load_from_bytes(glb)
     scene_index = gltf.scene or 0
     scene = gltf.scenes[scene_index]

@@ -29,6 +29,7 @@ from worker.recon.arrays import copy_where, fast_median
 from worker.recon.parallel import run_blocks
 
 __all__ = [
+    "GUARD_CLIFF",
     "GUARD_FRINGE",
     "GUARD_NEIGHBOURHOOD",
     "CombinedHeight",
@@ -368,7 +369,8 @@ class GuardedHeight(NamedTuple):
 
     height_um : (H, W) float32, the heights with every unsupported value replaced.
     flag : (H, W) uint8, 0 kept, 1 beyond the fringe bound, 2 outside its neighbourhood's
-        range (no fringe height there); the pixels replaced.
+        range (no fringe height there); the pixels replaced (3, `GUARD_CLIFF`, is the
+        pipeline's: a cliff pixel left NaN).
     """
 
     height_um: np.ndarray
@@ -377,6 +379,9 @@ class GuardedHeight(NamedTuple):
 
 GUARD_FRINGE = 1
 GUARD_NEIGHBOURHOOD = 2
+# Set by the pipeline (`walls.unmeasured_jumps`): next to a cliff, no measurement told
+# which side the pixel's centre is on; the height is left NaN.
+GUARD_CLIFF = 3
 
 
 def guard_heights(

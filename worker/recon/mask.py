@@ -19,7 +19,9 @@ Behind the tablet lies a dark, low-albedo support (black velvet, a V-block); cla
    V-block's) is found by its geometry: the heights split into smooth regions along
    cliffs no clay side or support face makes continuously (`_support_below_cliff`), and
    a region that reaches the image border and lies below the ground across its cliff is
-   the support;
+   the support; where the heights find a support and the brightness class holds more
+   than half of it (clay and support overlap in brightness: dark clay on a light cloth),
+   the geometry decides the whole mask, not only where the support is;
 4. morphology: opening (removes specks and thin bridges to the support), the largest
    connected component plus any component at least `min_part_fraction` of it, holes
    filled (wedge floors in cast shadow are tablet too), and one pixel eroded off the rim
@@ -105,22 +107,38 @@ def tablet_mask(
     measured = _fill_holes(_erode(_dilate(measured, 2), 2))
     fg &= measured
     if height_um is not None:
+        # Brightness is the finer cue (a sloping rim falls below any height threshold) as
+        # long as it tells the support from the clay. Where the heights find the support
+        # and brightness puts most of it in the tablet's class, the two populations overlap
+        # in brightness (a light cloth or V-block; dark clay): a dark patch of clay is then
+        # as likely to fall below Otsu's threshold as a bright patch of support above it,
+        # and the geometry decides the whole mask. Between the two (brightness takes some
+        # of the support) the evidence is mixed: brightness keeps its mask, less the
+        # support.
+        bright = fg
         raised = _raised_above_support(height_um, finite & measured)
-        if raised is not None and (raised & fg).sum() < 0.5 * (raised | fg).sum():
-            # A support as bright as the clay (a light V-block or cloth) that stands apart
-            # in height, where brightness picked mostly the support: the tablet is what
-            # stands above it. Where the two agree (IoU ≥ ½) brightness keeps its finer
-            # rim (the tablet's sloping sides fall below the heights' threshold).
-            fg = raised & finite & (b > 0.5 * min_albedo)
+        if raised is not None:
+            lower = finite & measured & ~raised
+            overlap = (raised & fg).sum() < 0.5 * (raised | fg).sum()
+            if overlap or _confuses(bright, lower):
+                # A support as bright as the clay (a light V-block or cloth) that stands
+                # apart in height: the tablet is what stands above it. Where the two agree
+                # (IoU ≥ ½) brightness keeps its finer rim.
+                fg = raised & finite & (b > 0.5 * min_albedo)
         if pixel_size_um is not None:
             support = _support_below_cliff(
                 height_um, finite & measured, pixel_size_um=pixel_size_um
             )
             if support is not None:
-                if (fg & ~support).sum() < 0.5 * fg.sum():
+                if (fg & ~support).sum() < 0.5 * fg.sum() or _confuses(bright, support):
                     # Brightness picked mostly the support (brighter than the clay, as a
-                    # light V-block is): the tablet is what the geometry leaves.
+                    # light V-block is), or cannot tell the two apart: the tablet is what
+                    # the geometry leaves.
                     fg = finite & measured & (b > 0.5 * min_albedo)
+                    # A pixel without a height has no geometry: next to the support (in
+                    # the tablet's shadow, where the fringes left the support unmeasured)
+                    # it goes with the support, one pixel deep.
+                    support = support | (_dilate(support, 1) & ~np.isfinite(height_um))
                 fg &= ~support
     if modulation is not None and fg.any():
         m = np.asarray(modulation, np.float32)
@@ -150,6 +168,13 @@ def tablet_mask(
     fg = keep[labels]
     fg = _fill_holes(fg)
     return _erode(fg, 1)
+
+
+def _confuses(bright: np.ndarray, support: np.ndarray, *, share: float = 0.5) -> bool:
+    """Whether the brightness class `bright` holds more than `share` of the `support` that
+    the heights found: brightness then does not tell the support from the clay."""
+    n = int(np.count_nonzero(support))
+    return n > 0 and int(np.count_nonzero(bright & support)) > share * n
 
 
 def _raised_above_support(height_um, where, *, border_share: float = 0.5):

@@ -34,6 +34,7 @@ __all__ = [
     "CliffRefinement",
     "CliffSamples",
     "RegionCheck",
+    "UnmeasuredJumps",
     "check_refinement",
     "cliff_band",
     "cliff_samples",
@@ -41,7 +42,9 @@ __all__ = [
     "mixture_amplitudes",
     "own_amplitude",
     "refine_cliff_heights",
+    "refine_cliffs",
     "side_heights",
+    "unmeasured_jumps",
 ]
 
 _OFFSETS8 = [(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (dr, dc) != (0, 0)]
@@ -402,6 +405,40 @@ def refine_cliff_heights(
 
     Returns :class:`CliffRefinement`.
     """
+    return refine_cliffs(
+        height_um,
+        fringe_height_um,
+        normals,
+        mask,
+        samples,
+        pixel_size_um=pixel_size_um,
+        blur_sigma_px=blur_sigma_px,
+        min_jump_um=min_jump_um,
+        radius=radius,
+        sample=sample,
+    )[0]
+
+
+def refine_cliffs(
+    height_um: np.ndarray,
+    fringe_height_um: np.ndarray,
+    normals: np.ndarray,
+    mask: np.ndarray,
+    samples: list[CliffSamples],
+    *,
+    pixel_size_um: float,
+    blur_sigma_px: float,
+    min_jump_um: float | None = None,
+    radius: int = 5,
+    sample: str = "point",
+) -> tuple[CliffRefinement, np.ndarray]:
+    """:func:`refine_cliff_heights`, and where the data showed a pixel near a cliff to be
+    pure: (H, W) bool, the processed pixels (two sides found) that at least one azimuth saw,
+    whose response a pure pixel at their own fringe height fits at least as well as the
+    two sides' mixture, and whose own amplitude is at least 0.8 of their side's in every
+    azimuth that saw them (a smaller one: part of the pixel is dark, the other side in
+    shadow, and the response is the lit part's). Their fringe height is then a measurement
+    of their side."""
     if sample not in ("point", "area"):
         raise ValueError(f"sample must be 'point' or 'area', got {sample!r}")
     h = np.asarray(height_um, np.float32)
@@ -412,11 +449,12 @@ def refine_cliff_heights(
     base = np.where(np.isfinite(fr), fr, h)
     jumps = cliff_band(base, m, min_jump_um=jump, pixel_size_um=s, normals=normals)
     out = h.copy()
+    pure_map = np.zeros(h.shape, bool)
     frac = np.full(h.shape, np.nan, np.float32)
     upper = np.full(h.shape, np.nan, np.float32)
     lower = np.full(h.shape, np.nan, np.float32)
     if not jumps.any() or not samples:
-        return CliffRefinement(out, frac, upper, lower)
+        return CliffRefinement(out, frac, upper, lower), pure_map
     band = _dilate(jumps, 1) & m
     near = _dilate(band, 3) & m
     with np.errstate(invalid="ignore"):
@@ -429,12 +467,14 @@ def refine_cliff_heights(
     )
     rows, cols, h_hi, h_lo = rows[valid], cols[valid], h_hi[valid], h_lo[valid]
     if rows.size == 0:
-        return CliffRefinement(out, frac, upper, lower)
+        return CliffRefinement(out, frac, upper, lower), pure_map
     mid = 0.5 * (h_hi + h_lo)
     shares, weights = [], []
     # Misfit of the two-side model and of a pure pixel at its own fringe height.
     misfit_two = np.zeros(rows.size)
     misfit_pure = np.zeros(rows.size)
+    seen = np.zeros(rows.size, bool)
+    whole = np.ones(rows.size, bool)  # every azimuth sees the whole pixel as its side
     own_h = fr[rows, cols].astype(np.float64)
     width = h.shape[1]
     flat = rows * width + cols
@@ -452,7 +492,15 @@ def refine_cliff_heights(
         phase = -2j * np.pi * smp.tan_theta / smp.period_um[:, None]
         fit = m_hi * np.exp(phase * h_hi) + m_lo * np.exp(phase * h_lo)
         e_own = np.exp(phase * np.nan_to_num(own_h))
-        pure_fit = own_amplitude(z, smp.period_um, smp.tan_theta, np.nan_to_num(own_h)) * e_own
+        a_own = own_amplitude(z, smp.period_um, smp.tan_theta, np.nan_to_num(own_h))
+        pure_fit = a_own * e_own
+        seen |= used
+        # A pure pixel's own amplitude is its side's: a smaller one says part of the pixel
+        # is dark in this azimuth (the other side in the projector's shadow), and the
+        # response is that of the lit part, not of the pixel's centre.
+        a_near = np.where(np.abs(own_h - h_hi) <= np.abs(own_h - h_lo), a_hi, a_lo)
+        with np.errstate(invalid="ignore"):
+            whole &= ~(used & (a_own < 0.8 * a_near))
         misfit_two += np.where(used, np.sum(np.abs(z - fit) ** 2, axis=0), 0.0)
         misfit_pure += np.where(used, np.sum(np.abs(z - pure_fit) ** 2, axis=0), 0.0)
         top = np.fmax(a_hi, a_lo)
@@ -466,7 +514,7 @@ def refine_cliff_heights(
     # one side's brightness at the pixel differ from its neighbours' (that share is then
     # wrong, not noisy); the median follows the consistent majority.
     if not shares:
-        return CliffRefinement(out, frac, upper, lower)
+        return CliffRefinement(out, frac, upper, lower), pure_map
     t_all, w_all = np.stack(shares, axis=1), np.stack(weights, axis=1)
     order = np.argsort(t_all, axis=1)
     t_all = np.take_along_axis(t_all, order, axis=1)
@@ -477,6 +525,8 @@ def refine_cliff_heights(
     # (none: the fringes gave up on it). Sides read from ground that is not two planes
     # (several surfaces in the window, at coarse pixels) fail this test.
     is_pure = np.isfinite(own_h) & (misfit_pure <= misfit_two)
+    trusted = is_pure & seen & whole
+    pure_map[rows[trusted], cols[trusted]] = True
     ok = np.isfinite(g) & ~is_pure
     # A pure pixel the fusion pulled across the cliff gets its own fringe height back.
     back = is_pure & pulled[rows, cols]
@@ -491,7 +541,63 @@ def refine_cliff_heights(
     frac[r_ok, c_ok] = f
     upper[r_ok, c_ok] = h_hi[ok]
     lower[r_ok, c_ok] = h_lo[ok]
-    return CliffRefinement(out, frac, upper, lower)
+    return CliffRefinement(out, frac, upper, lower), pure_map
+
+
+class UnmeasuredJumps(NamedTuple):
+    """Output of :func:`unmeasured_jumps`, (H, W) bool each."""
+
+    cliff: np.ndarray  # ground at two levels around the pixel: its side is unknown
+    steep: np.ndarray  # steep ground whose normals explain the jump
+
+
+def unmeasured_jumps(
+    height_um: np.ndarray,
+    fringe_height_um: np.ndarray,
+    normals: np.ndarray | None,
+    mask: np.ndarray,
+    decided: np.ndarray,
+    *,
+    valid: np.ndarray,
+    pixel_size_um: float,
+    min_jump_um: float | None = None,
+) -> UnmeasuredJumps:
+    """Pixels next to a jump of the heights that no measurement placed.
+
+    The zone: pixels within one pixel of a jump of the heights (the fringe heights,
+    ``height_um`` where they have none) beyond ``min_jump_um`` (default 2.6 pixel sizes,
+    what ground of 69° rises over one pixel) more than the normals predict (`cliff_band`),
+    without a valid fringe height (``valid``: near a jump no single fringe height is one)
+    and not ``decided`` (the caller's evidence: the fringe response over the periods placed
+    the pixel, `refine_cliffs`). Split by the normals, trusted up to 85° here:
+
+    cliff: the normals do not explain the jump either: a vertical wall shows no area, so
+        the pixels beside it keep their sides' normals. SCAN_BUNDLE.md: a pixel's height is
+        the surface's at its centre, so a pixel at a cliff has the height of the side its
+        centre is on, never one between and never the other side's; here nothing told
+        which side that is (a wrong guess is a spike of the cliff's height);
+    steep: they do: steep ground (a break face, a tablet's side) that is seen, every
+        height along it a point sample of it.
+    """
+    h = np.asarray(height_um, np.float32)
+    m = np.asarray(mask, bool) & np.isfinite(h)
+    fr = np.asarray(fringe_height_um, np.float32)
+    s = float(pixel_size_um)
+    jump = float(min_jump_um) if min_jump_um is not None else 2.6 * s
+    base = np.where(np.isfinite(fr), fr, h)
+    jumps = cliff_band(base, m, min_jump_um=jump, pixel_size_um=s, normals=normals)
+    none = np.zeros(h.shape, bool)
+    if not jumps.any():
+        return UnmeasuredJumps(none, none.copy())
+    near = _dilate(jumps, 1)
+    zone = near & m & ~np.asarray(valid, bool) & ~np.asarray(decided, bool)
+    if normals is None or not zone.any():
+        return UnmeasuredJumps(zone, none)
+    wall = cliff_band(
+        base, m, min_jump_um=jump, pixel_size_um=s, normals=normals, max_slope_deg=85.0
+    )
+    cliff = zone & _dilate(wall, 1)
+    return UnmeasuredJumps(cliff, zone & ~cliff)
 
 
 class RegionCheck(NamedTuple):

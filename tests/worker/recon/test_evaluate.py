@@ -46,3 +46,16 @@ def test_wedges_left_unreconstructed_are_not_counted():
         h, gt_n, gt_mask, gt_height_um=gt_h, gt_normals=gt_n, gt_mask=gt_mask, wedges=[wedge]
     )
     assert f["wedges"] == 0 and np.isnan(f["wedge_depth_mae_um"])
+
+
+def test_wedges_with_a_rim_point_left_out_are_not_counted():
+    # A rim point on a pixel the chain left NaN (a cliff pixel whose side is unknown) would
+    # be read at the filled median height: the wedge is not counted.
+    gt_h, gt_n, gt_mask, wedge = _scene()
+    h = gt_h.copy()
+    p = wedge["rim"][0]
+    h[int(round(p["row"])), int(round(p["col"]))] = np.nan
+    f = evaluate(
+        h, gt_n, gt_mask, gt_height_um=gt_h, gt_normals=gt_n, gt_mask=gt_mask, wedges=[wedge]
+    )
+    assert f["wedges"] == 0 and np.isnan(f["wedge_depth_mae_um"])

@@ -20,6 +20,7 @@ from worker.recon.walls import (
     own_amplitude,
     refine_cliff_heights,
     side_heights,
+    unmeasured_jumps,
 )
 
 S_UM = 26.8
@@ -379,3 +380,43 @@ def test_check_refinement_stands_down_where_a_side_is_not_measured():
     # Nothing changed: nothing to check.
     same = check_refinement(before, before, fringe, mask)
     assert same.regions == 0 and not same.acted.any()
+
+
+def test_unmeasured_jumps_are_cliffs_with_two_sides_or_steep_ground():
+    # A terrace 600 µm high (a chip's wall) and, apart from it, ground rising at 80° to
+    # the border (a break face): next to both the heights jump beyond what ground of 60°
+    # rises. Beside the wall the normals are flat (a vertical wall shows no area): a
+    # cliff, its pixels' side unknown; along the face they are steep and explain the jump
+    # (steep ground, kept). Pixels the caller's evidence decided, or with a valid fringe height,
+    # are never returned.
+    rows, cols = 40, 60
+    y, x = np.mgrid[0:rows, 0:cols]
+    h = np.where(x >= 20, 600.0, 0.0).astype(np.float32)
+    ramp = x >= 40
+    # (The foot at half a pixel before x = 40: the mean normal of the pair (39, 40), half
+    # flat and half steep, predicts its rise.)
+    h = np.where(ramp, 600.0 + (x - 39.5) * S_UM * np.tan(np.radians(80)), h)
+    h = h.astype(np.float32)
+    normals = np.zeros((rows, cols, 3), np.float32)
+    normals[..., 2] = -1.0
+    t = np.tan(np.radians(80))
+    normals[ramp] = np.array([-t, 0.0, -1.0]) / np.hypot(t, 1.0)
+    mask = np.ones((rows, cols), bool)
+    none = np.zeros((rows, cols), bool)
+    fringe = np.full((rows, cols), np.nan, np.float32)
+    got = unmeasured_jumps(h, fringe, normals, mask, none, valid=none, pixel_size_um=S_UM)
+    assert got.cliff[5:-5, 19:21].all()  # the pixels on either side of the wall
+    assert not got.cliff[:, 30:].any() and not got.steep[:, :30].any()
+    assert got.steep[5:-5, 45:55].all() and not got.steep[:, :38].any()
+    assert not (got.cliff & got.steep).any()
+    # Decided by the fringe response, or a valid fringe height: never returned.
+    decided = none.copy()
+    decided[:, 19] = True
+    valid = none.copy()
+    valid[:, 20] = True
+    got = unmeasured_jumps(h, fringe, normals, mask, decided, valid=valid, pixel_size_um=S_UM)
+    assert not got.cliff[:, 19:21].any()
+    # Without a jump, nothing.
+    flat = np.zeros((rows, cols), np.float32)
+    got = unmeasured_jumps(flat, fringe, normals, mask, none, valid=none, pixel_size_um=S_UM)
+    assert not got.cliff.any() and not got.steep.any()
