@@ -26,7 +26,12 @@ from worker.measure.result import bundle_errors_as_reconstruction_errors
 from worker.model_dir import ModelArrays, albedo_png_bytes, write_model_dir_timed
 from worker.recon.arrays import fast_median
 from worker.recon.color import linear_to_srgb8
-from worker.recon.fusion import fuse_default, sharpen_heights
+from worker.recon.fusion import (
+    PIXEL_AREA_VAR_PX2,
+    fuse_default,
+    point_sample_sigma_px,
+    sharpen_heights,
+)
 from worker.recon.fusion_paper import fuse_paper
 from worker.recon.ground_mask import ground_mask
 from worker.recon.height import (
@@ -292,7 +297,8 @@ def surface_of(
     Uses what the bundle has: normals and fringe heights → fusion; normals only →
     integration; fringe heights only → the heights, with normals from their gradient.
     blur_sigma_px: σ of the camera's PSF (`camera_blur_px`); the default fusion's heights
-    are sharpened by it (`fusion.sharpen_heights`), the baselines are left as measured.
+    are sharpened by it and the pixel's own area (`fusion.point_sample_sigma_px`,
+    `fusion.sharpen_heights`), the baselines are left as measured.
     """
     h, normals_of, name, _ = _surface(
         meas, mask, fusion=fusion, surface=surface, blur_sigma_px=blur_sigma_px
@@ -368,11 +374,14 @@ def _surface(
         },
         "normal_bias": _normal_bias_entry(meas.normals, normals, mask),
     }
-    sharp = h
-    if blur_sigma_px > 0:
-        sharp = sharpen_heights(h, mask, blur_sigma_px=blur_sigma_px, pixel_size_um=s)
+    # The heights are those of the surface averaged over each pixel and the camera's PSF;
+    # the output is the point sample at the pixel's centre (SCAN_BUNDLE.md).
+    sharpen_px = point_sample_sigma_px(blur_sigma_px)
+    sharp = sharpen_heights(h, mask, blur_sigma_px=sharpen_px, pixel_size_um=s)
     refinements["sharpen"] = {
-        "sigma_px": float(blur_sigma_px),
+        "sigma_px": sharpen_px,
+        "camera_psf_px": float(blur_sigma_px),
+        "pixel_area_var_px2": PIXEL_AREA_VAR_PX2,
         "pixels": int(np.count_nonzero(mask & (sharp != h) & np.isfinite(h))),
     }
     h = sharp

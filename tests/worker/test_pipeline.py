@@ -91,7 +91,8 @@ def _set_psf(bundle_dir, sigma_px):
 def test_falling_modulation_without_a_psf_field_gets_no_sharpening(tmp_path):
     # A projector whose MTF takes the finest periods' modulation down to a few per cent
     # (the former fit read several pixels of camera blur from it) and no camera.psf_sigma_px:
-    # nobody measured the camera, so no blur is assumed and nothing is sharpened.
+    # nobody measured the camera, so no blur is assumed: the heights are sharpened by the
+    # pixel's own area alone (a point sample at its centre, SCAN_BUNDLE.md).
     from perturbed_bundles import projector_mtf
 
     from worker import pipeline
@@ -108,7 +109,9 @@ def test_falling_modulation_without_a_psf_field_gets_no_sharpening(tmp_path):
     assert mods[finest] < 0.5 * mods[coarse]  # the modulation does fall with the period
     assert report["quality"]["camera_blur_sigma_px"] == 0.0
     assert "absent" in report["quality"]["camera_blur_source"]
-    assert report["refinements"]["sharpen"] == {"sigma_px": 0.0, "pixels": 0}
+    sharpen = report["refinements"]["sharpen"]
+    assert sharpen["camera_psf_px"] == 0.0
+    assert sharpen["sigma_px"] == pytest.approx(np.sqrt(1 / 12))
 
 
 def test_the_manifest_psf_is_used_and_reported(tmp_path):
@@ -120,7 +123,8 @@ def test_the_manifest_psf_is_used_and_reported(tmp_path):
     report = pipeline.reconstruct_bundle(bundle, tmp_path / "m")
     assert report["quality"]["camera_blur_sigma_px"] == 0.5
     assert report["quality"]["camera_blur_source"] == "manifest camera.psf_sigma_px"
-    assert report["refinements"]["sharpen"]["sigma_px"] == 0.5
+    assert report["refinements"]["sharpen"]["camera_psf_px"] == 0.5
+    assert report["refinements"]["sharpen"]["sigma_px"] == pytest.approx(np.sqrt(0.25 + 1 / 12))
     assert report["refinements"]["sharpen"]["pixels"] > 0
     # Every refinement says where it acted; the guard's map is written.
     for step in ("normal_bias", "walls", "guard"):

@@ -227,6 +227,35 @@ def test_sharpening_restores_a_blurred_groove_and_leaves_noise_alone():
     assert _rms(kept - flat) < 0.1
 
 
+def test_point_sample_sharpening_undoes_the_pixel_area():
+    # The pixel-averaged groove is shallower than its point samples at the pixel centres
+    # (the V's tip is averaged over the pixel, 2 µm here); sharpening by the pixel's own area alone
+    # (no camera PSF: σ² = 1/12 px²) brings the tip back toward the point sample, and a
+    # camera PSF adds its variance.
+    from worker.recon.fusion import PIXEL_AREA_VAR_PX2, point_sample_sigma_px, sharpen_heights
+
+    cols, ss, c = 80, 16, 40
+    tip = (c + 0.5) * S_UM  # the V's tip at a pixel's centre
+
+    def v(x):
+        return -np.clip(60 - np.abs(x - tip) * 60 / 150, 0, None)
+
+    fine = v((np.arange(cols * ss) + 0.5) / ss * S_UM).reshape(cols, ss).mean(axis=1)
+    area = np.tile(fine, (40, 1)).astype(np.float32)
+    point = np.tile(v((np.arange(cols) + 0.5) * S_UM), (40, 1))
+    lost = area[5:-5, c].mean() - point[5:-5, c].mean()
+    assert lost > 1
+    sigma = point_sample_sigma_px(0.0)
+    assert sigma == pytest.approx(np.sqrt(PIXEL_AREA_VAR_PX2))
+    got = sharpen_heights(area, np.ones(area.shape, bool), blur_sigma_px=sigma, pixel_size_um=S_UM)
+    # A kink is where the second-order expansion is weakest: a quarter of the loss comes back.
+    assert abs(got[5:-5, c].mean() - point[5:-5, c].mean()) < 0.8 * lost
+    np.testing.assert_allclose(got[:, c + 3 : c + 6], area[:, c + 3 : c + 6])  # straight flank
+    assert point_sample_sigma_px(0.5) == pytest.approx(np.sqrt(0.25 + 1 / 12))
+    with pytest.raises(ValueError, match="camera_psf_px"):
+        point_sample_sigma_px(-0.1)
+
+
 def test_sharpening_depends_on_the_valid_pixels_only():
     # Heights on a ragged mask (holes, NaN, a border of invalid frame around it): the same
     # bits whatever the invalid frame around them (the correction works on their bounding
