@@ -291,25 +291,33 @@ def _canvas(base: str, face_model: FaceModel) -> dict[str, Any]:
     if face_model.annotations:
         # Non-painting annotations (Presentation 3 §3.4 "annotations"): the signs scholars
         # tied to regions of this face, as tagging / commenting annotations on the canvas.
-        canvas["annotations"] = [
-            {
-                "id": f"{canvas_id}/annotations",
-                "type": "AnnotationPage",
-                "label": lang("Signs linked to the transliteration", "en"),
-                "items": [
-                    iiif_annotation(
-                        annotation_id=f"{canvas_id}/annotations/{a.number}",
-                        canvas_id=canvas_id,
-                        reference=a.reference,
-                        reading=a.reading,
-                        comment=a.comment,
-                        polygon_px=a.polygon,
-                    )
-                    for a in face_model.annotations
-                ],
-            }
-        ]
+        canvas["annotations"] = _sign_page(
+            canvas_id,
+            [
+                iiif_annotation(
+                    annotation_id=f"{canvas_id}/annotations/{a.number}",
+                    canvas_id=canvas_id,
+                    reference=a.reference,
+                    reading=a.reading,
+                    comment=a.comment,
+                    polygon_px=a.polygon,
+                )
+                for a in face_model.annotations
+            ],
+        )
     return canvas
+
+
+def _sign_page(owner_id: str, items: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The `annotations` of a canvas or scene: one page of its signs' annotations."""
+    return [
+        {
+            "id": f"{owner_id}/annotations",
+            "type": "AnnotationPage",
+            "label": lang("Signs linked to the transliteration", "en"),
+            "items": items,
+        }
+    ]
 
 
 def _own_rights(resource: dict[str, Any], face_model: FaceModel) -> None:
@@ -468,24 +476,20 @@ def _scene(base: str, face_model: FaceModel) -> dict[str, Any]:
         scene["thumbnail"] = [_image(urls["thumbnail.png"])]
     _own_rights(scene, face_model)
     if face_model.scene_annotations:
-        scene["annotations"] = [
-            {
-                "id": f"{scene_id}/annotations",
-                "type": "AnnotationPage",
-                "label": lang("Signs linked to the transliteration", "en"),
-                "items": [
-                    scene_annotation(
-                        annotation_id=f"{scene_id}/annotations/{a.number}",
-                        scene_id=scene_id,
-                        reference=a.reference,
-                        reading=a.reading,
-                        comment=a.comment,
-                        polygon_scene_m=a.polygon,
-                    )
-                    for a in face_model.scene_annotations
-                ],
-            }
-        ]
+        scene["annotations"] = _sign_page(
+            scene_id,
+            [
+                scene_annotation(
+                    annotation_id=f"{scene_id}/annotations/{a.number}",
+                    scene_id=scene_id,
+                    reference=a.reference,
+                    reading=a.reading,
+                    comment=a.comment,
+                    polygon_scene_m=a.polygon,
+                )
+                for a in face_model.scene_annotations
+            ],
+        )
     return scene
 
 
