@@ -141,6 +141,19 @@ def _fsync_tree_files(root: Path) -> None:
                 os.fsync(fh.fileno())
 
 
+def write_file_list(root: Path) -> int:
+    """Write root/files.json (relative name → size_bytes, sha256 of every file below root:
+    what the API may serve under tiles/) and return the files' total bytes."""
+    files = {}
+    for path in sorted(root.rglob("*")):
+        if path.is_file():
+            data = path.read_bytes()
+            rel = path.relative_to(root).as_posix()
+            files[rel] = {"size_bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+    write_file_atomic(root / "files.json", json.dumps(files, separators=(",", ":")).encode())
+    return sum(f["size_bytes"] for f in files.values())
+
+
 def fill_tiles(
     tmp: Path,
     *,
@@ -300,15 +313,7 @@ def fill_tiles(
 
     # 4. The per-file index (for the API) and index.json, last.
     _fsync_tree_files(tmp / "iiif")
-    files = {}
-    total_bytes = 0
-    for path in sorted(tmp.rglob("*")):
-        if path.is_file():
-            data = path.read_bytes()
-            rel = path.relative_to(tmp).as_posix()
-            files[rel] = {"size_bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
-            total_bytes += len(data)
-    write_file_atomic(tmp / "files.json", json.dumps(files, separators=(",", ":")).encode())
+    total_bytes = write_file_list(tmp)
     index = {
         "version": 1,
         "width_px": W,

@@ -11,7 +11,6 @@ index.json files; `tiles/files.json` every file.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import time
@@ -24,7 +23,7 @@ import numpy as np
 from worker.durable import replace_dir_atomic, write_file_atomic
 from worker.recon.gltf_frame import gltf_root_matrix
 from worker.recon.shading_maps import normals_rgb8
-from worker.tiles.build import TileError, fill_tiles, glb_root_matrix
+from worker.tiles.build import TileError, fill_tiles, glb_root_matrix, write_file_list
 
 __all__ = ["build_tablet_tiles", "transformed_box"]
 
@@ -135,14 +134,7 @@ def build_tablet_tiles(
         }
         (tmp / "3d").mkdir()
         (tmp / "3d" / "tileset.json").write_text(json.dumps(tileset), encoding="utf-8")
-        files, total = {}, 0
-        for path in sorted(tmp.rglob("*")):
-            if path.is_file():
-                data = path.read_bytes()
-                rel = path.relative_to(tmp).as_posix()
-                files[rel] = {"size_bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
-                total += len(data)
-        write_file_atomic(tmp / "files.json", json.dumps(files, separators=(",", ":")).encode())
+        total = write_file_list(tmp)
         stats = {
             "seconds": round(time.perf_counter() - t0, 3),
             "bytes": total,
