@@ -241,15 +241,19 @@ def list_tablet_annotations(
     tablet: ReadableTablet, session: SessionDep, settings: SettingsDep, q: Search = None
 ):
     """Every annotation of the tablet's model versions, oldest first; each names its version."""
+    return _listing(
+        session, settings, Annotation.tablet_id == tablet.id, f"tablets/{tablet.id}/annotations", q
+    )
+
+
+def _listing(session: Session, settings, where, path: str, q: str | None):
+    """The page of the annotations matching `where` (and the search q), oldest first, at
+    the public URL of `path`."""
     rows = session.scalars(
-        _search(select(Annotation).where(Annotation.tablet_id == tablet.id), q).order_by(
-            Annotation.id
-        )
+        _search(select(Annotation).where(where), q).order_by(Annotation.id)
     ).all()
     api = f"{settings.resolved_public_url}{settings.api_prefix}"
-    return _page(
-        session, settings, f"{api}/tablets/{tablet.id}/annotations{_query_suffix(q)}", list(rows)
-    )
+    return _page(session, settings, f"{api}/{path}{_query_suffix(q)}", list(rows))
 
 
 def _readable_model(session: Session, user: User | None, model_id: int) -> tuple[Model, Tablet]:
@@ -276,14 +280,8 @@ def list_model_annotations(
 ):
     """The annotations of one model version, oldest first."""
     model, _tablet = _readable_model(session, user, model_id)
-    rows = session.scalars(
-        _search(select(Annotation).where(Annotation.model_id == model.id), q).order_by(
-            Annotation.id
-        )
-    ).all()
-    api = f"{settings.resolved_public_url}{settings.api_prefix}"
-    return _page(
-        session, settings, f"{api}/models/{model.id}/annotations{_query_suffix(q)}", list(rows)
+    return _listing(
+        session, settings, Annotation.model_id == model.id, f"models/{model.id}/annotations", q
     )
 
 
