@@ -316,8 +316,11 @@ def _region(
     image_face: str | None,
     *,
     px_given: bool,
+    face_given: bool = False,
 ) -> tuple[list | None, str | None]:
-    """The image-grid polygon and its face, checked against the model (422 naming the field)."""
+    """The image-grid polygon and its face, checked against the model (422 naming the field).
+
+    ``face_given``: the request itself names ``image_face`` (not kept from before)."""
     face = _face_of(session, model)
     if face != WHOLE:
         if image_face not in (None, face):
@@ -345,6 +348,15 @@ def _region(
             422,
             "image_face: a whole-tablet model has one image grid per face; name the face "
             "polygon_px is on",
+            where="body.image_face",
+        )
+    elif polygon_px is None and face_given:
+        # Not dropped silently: the face only says which image polygon_px is on (and pixels
+        # kept from before are on the old face's image).
+        raise ApiError(
+            422,
+            f"image_face: {image_face!r} names the face whose image polygon_px is on; "
+            "give polygon_px with it",
             where="body.image_face",
         )
     if polygon_px is not None and len(polygon_px) != len(polygon_mm):
@@ -382,6 +394,7 @@ def create_annotation(
         body.polygon_px,
         body.image_face,
         px_given="polygon_px" in body.model_fields_set,
+        face_given=body.image_face is not None,
     )
     annotation = Annotation(
         model_id=model.id,
@@ -469,6 +482,7 @@ def update_annotation(
             polygon_px,
             changes.get("image_face", annotation.image_face),
             px_given="polygon_px" in changes,
+            face_given=changes.get("image_face") is not None,
         )
         annotation.polygon_mm, annotation.polygon_px = polygon_mm, polygon_px
         annotation.image_face = image_face

@@ -210,7 +210,8 @@ def update_model(
     return ModelOut.of(model, api_prefix=settings.api_prefix)
 
 
-_RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
+# RFC 9110 14.1: the range unit is compared case-insensitively ("Bytes=0-9" is a range).
+_RANGE = re.compile(r"^bytes=([0-9]*)-([0-9]*)$", re.IGNORECASE)
 
 
 def parse_range(header: str, size_bytes: int) -> tuple[int, int] | None:

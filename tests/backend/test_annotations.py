@@ -189,6 +189,21 @@ def test_whole_tablet_annotations_name_their_face(client, world, store, tmp_path
     assert ok.json()["face"] == "tablet" and ok.json()["imageFace"] == "reverse"
     only_mm = post(client, world, whole).json()
     assert len(only_mm["target"]) == 1  # no image grid named: the model region only
+    # image_face names the image polygon_px is on: alone it was dropped without a word, and
+    # a PATCH moving the face silently threw the annotation's image polygon away.
+    alone = post(client, world, whole, image_face="reverse")
+    assert alone.status_code == 422 and alone.json()["where"] == "body.image_face", alone.text
+    assert "polygon_px" in alone.json()["detail"]
+    url = f"{API}/annotations/{ok.json()['annotationId']}"
+    moved = client.patch(url, json={"image_face": "obverse"}, headers=world.headers("reader"))
+    assert moved.status_code == 422 and moved.json()["where"] == "body.image_face", moved.text
+    kept = client.get(url).json()
+    assert kept["imageFace"] == "reverse" and kept["polygonPx"] == [[1, 1], [2, 1], [2, 2]]
+    both = {"image_face": "obverse", "polygon_px": [[3, 1], [4, 1], [4, 2]]}
+    moved = client.patch(url, json=both, headers=world.headers("reader"))
+    assert moved.status_code == 200 and moved.json()["imageFace"] == "obverse", moved.text
+    cleared = client.patch(url, json={"polygon_px": None}, headers=world.headers("reader"))
+    assert cleared.json()["imageFace"] is None and cleared.json()["polygonPx"] is None
 
 
 def test_the_manifest_carries_the_annotations_and_validates(client, world, obverse):

@@ -80,6 +80,8 @@ def test_full_download_with_caching_headers(client, world, store, tmp_path):
         ("bytes=-10", 10230, 10240),
         ("bytes=10000-20000", 10000, 10240),  # clipped to the end
         ("bytes=10239-10239", 10239, 10240),
+        ("Bytes=0-9", 0, 10),  # RFC 9110 14.1: range units compare case-insensitively
+        ("BYTES=-10", 10230, 10240),
     ],
 )
 def test_single_range_is_206(client, world, store, tmp_path, header, start, end):
@@ -184,6 +186,7 @@ def test_parse_range_rules():
     assert parse_range("bytes=-100", 5) == (0, 5)
     assert parse_range("items=0-1", 5) is None
     assert parse_range("bytes=3-1", 5) is None
+    assert parse_range("Bytes=1-2", 5) == (1, 3)
     for bad in ("bytes=5-", "bytes=-0"):
         with pytest.raises(ValueError):
             parse_range(bad, 5)

@@ -186,8 +186,13 @@ export function bindScholarTools(viewer, context) {
   canvas.addEventListener('pointerup', onUp);
   const sectionPicker = createPicker(viewer, canvas, { onDone: (points) => cutSection(points) });
 
+  const TOOL_NAMES = { light: 'Best light', section: 'Section' };
   function setTool(next) {
     tool = tool === next ? null : next;
+    // A streamed model has no one mesh nor normal map in memory (tiles come and go with the
+    // camera, tiles.js): neither tool has what it cuts or searches.
+    const refused = tool && viewer.model?.tiles ? tool : null;
+    if (refused) tool = null;
     $('best-light').setAttribute('aria-pressed', String(tool === 'light'));
     $('section').setAttribute('aria-pressed', String(tool === 'section'));
     canvas.classList.toggle('picking', Boolean(tool));
@@ -199,6 +204,9 @@ export function bindScholarTools(viewer, context) {
     }
     else if (tool === 'section') say('Click the two ends of the section line.');
     if (tool) canvas.classList.add('picking');
+    if (refused) {
+      say(`${TOOL_NAMES[refused]}: not available on a streamed (tiled) model yet; its mesh and maps are loaded tile by tile.`);
+    }
   }
   function say(text) {
     $('readout').textContent = text;

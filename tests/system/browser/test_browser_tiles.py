@@ -250,6 +250,30 @@ def test_profile_reads_only_the_rows_it_touches(tiled_page, tiled, tools):
     assert not errors, errors
 
 
+def test_section_and_best_light_say_they_wait_for_a_whole_mesh(tiled_page, tiled, tools):
+    """A streamed model has no one mesh nor normal map in memory: the section and best-light
+    tools say so when chosen (they used to throw on the second click, or blame a missing
+    normals.png the model has), and pick nothing."""
+    page, errors = tiled_page
+    page.evaluate("() => window.hammurabi.viewer.resetView()")
+    wait_streamed(page)
+    wx, wy = tiled.wedge_mm
+    page.locator("#section").click()
+    assert page.locator("#section").get_attribute("aria-pressed") == "false"
+    assert "streamed" in page.locator("#readout").inner_text()
+    for p in ([wx - 3, wy, 0.0], [wx + 3, wy, 0.0]):
+        page.mouse.click(*tools.screen_of(page, p))
+    assert page.locator("#section-panel").is_hidden()
+    page.locator("#viewer").focus()
+    page.keyboard.press("w")
+    assert page.locator("#best-light").get_attribute("aria-pressed") == "false"
+    readout = page.locator("#readout").inner_text()
+    assert readout.startswith("Best light:") and "streamed" in readout, readout
+    page.mouse.click(*tools.screen_of(page, [wx, wy, 0.0]))
+    assert page.locator("#light-strip").is_hidden()
+    assert not errors, errors
+
+
 @pytest.fixture(scope="module")
 def tiled_tablet(library, tmp_path_factory):
     """A whole tablet of two procedural faces (worker.tiles.tablet): the obverse as scanned,
