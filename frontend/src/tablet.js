@@ -71,6 +71,7 @@ ui = bindViewerUi(viewer, {
   measureChanged: () => currentModel && scheduleHash(),
 });
 photos = bindPhotoPanel(viewer, {
+  canvas: $('viewer'),
   controls: $('photo-controls'),
   show: $('photo-show'),
   swipe: $('photo-swipe'),

@@ -180,7 +180,11 @@ def register_model_dirs(
         "faces": {
             c.label: {
                 "assets": face_asset_dir(c.label),
+                "face": c.face,
+                "pixel_size_um": raw["pixel_size_um"],
                 "quality_maps": sorted(raw.get("quality_maps", {})),
+                "photos": "photos/index.json" in raw.get("photo_files", {}),
+                "gloss": "gloss.png" in raw.get("photo_files", {}),
             }
             for c, raw in loaded
         },
