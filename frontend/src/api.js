@@ -96,6 +96,9 @@ export const retryJob = (id) => request('POST', api(`/jobs/${encodeURIComponent(
 /** The tablet-level models (registration of all scans: whole-tablet GLB, fatcross plates). */
 export const tabletModels = (tabletId) => request('GET', api('/models'), { query: { tablet_id: tabletId } });
 export const getModel = (id) => request('GET', api(`/models/${encodeURIComponent(id)}`));
+/** Set a model's own licence URI and attribution (null clears one): staff of its institution. */
+export const updateModel = (id, { licence, attribution }) =>
+  request('PATCH', api(`/models/${encodeURIComponent(id)}`), { json: { licence, attribution } });
 export const modelAssetUrl = (id, name) =>
   api(`/models/${encodeURIComponent(id)}/assets/${name.split('/').map(encodeURIComponent).join('/')}`);
 

@@ -9,6 +9,7 @@ import { bindScholarTools } from './viewer/scholar.js';
 import { bindCite } from './viewer/citeUi.js';
 import { bindPhotoPanel } from './viewer/photos.js';
 import { bindAnnotations } from './annotationsPanel.js';
+import { bindLicenceForm } from './licenceForm.js';
 import { decodeViewState, encodeViewState } from './viewer/permalink.js';
 import { tileOptionsFromSearch } from './viewer/tilesIndex.js';
 import { createViewer } from './viewer/viewer.js';
@@ -71,6 +72,7 @@ ui = bindViewerUi(viewer, {
   measureChanged: () => currentModel && scheduleHash(),
 });
 photos = bindPhotoPanel(viewer, {
+  canvas: $('viewer'),
   controls: $('photo-controls'),
   show: $('photo-show'),
   swipe: $('photo-swipe'),
@@ -92,6 +94,14 @@ bindCite({
       view: { mode: state.shading.mode, light: state.light, measure: ui.measurement() },
       permalink: ui.permalinkUrl(),
     };
+  },
+});
+
+const licence = bindLicenceForm({
+  container: $('licence'),
+  // Citations and exports read the model on screen: they carry the new licence at once.
+  onSaved: (saved) => {
+    if (currentModel?.id === saved.id) currentModel = { ...currentModel, ...saved };
   },
 });
 
@@ -285,6 +295,7 @@ async function showModel(modelId) {
     }
     renderFaces(model);
     annotations.setModel(model);
+    licence.setModel(model);
     scheduleHash();
     $('viewer').dataset.loaded = String(model.id);
   } catch (err) {
@@ -346,6 +357,10 @@ async function main() {
     tablet = await api.getTablet(tabletId);
     renderCatalogue(tablet);
     annotations.setTablet(tablet).catch(reportError);
+    api
+      .me()
+      .catch(() => null)
+      .then((me) => licence.setContext(me, tablet));
     await refreshScans({ pickModel: true });
   } catch (err) {
     reportError(err);

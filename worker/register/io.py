@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -13,18 +15,28 @@ from PIL.PngImagePlugin import PngInfo
 from worker.durable import replace_dir_atomic, write_new_file
 from worker.register.pointcloud import ScanCloud, scan_cloud
 
+log = logging.getLogger("worker.register.io")
+
 __all__ = [
+    "GLOSS_FILES",
     "QUALITY_MAPS",
     "SHADING_MAPS",
     "RegisterInputError",
     "face_asset_dir",
     "load_model_dir",
+    "photo_asset_names",
     "png_bytes",
     "write_output_dir",
 ]
 
 # A face model's image-grid shading maps (worker/assets.py) that the whole tablet serves per face.
 SHADING_MAPS = ("curvature.png", "curvature_coarse.png", "accessibility.png")
+# A face model's measured gloss (worker/photos.py), carried into the whole tablet per face.
+GLOSS_FILES = ("gloss.png", "gloss.json")
+# A photograph's name in photos/index.json (worker/photos.py writes photos/NNN-kind-azA.jpg);
+# anything else (a path out of photos/, another type) is never copied.
+_PHOTO_NAME = re.compile(r"^photos/[A-Za-z0-9][A-Za-z0-9._-]*\.jpe?g$")
+
 # A face model's per-pixel quality maps (docs/reconstruction.md, quality/*.npy), carried into
 # the whole tablet per face on the face's image grid (what a viewer shows as trust).
 QUALITY_MAPS = (
@@ -105,7 +117,46 @@ def load_model_dir(path: str | os.PathLike) -> tuple[ScanCloud, dict]:
             for name in QUALITY_MAPS
             if (d / "quality" / name).is_file()
         },
+        # Its photographs and measured gloss (worker/photos.py), passed on as they are.
+        "photo_files": face_photo_files(d),
     }
+
+
+def photo_asset_names(index_bytes: bytes) -> list[str]:
+    """The photographs a face model's ``photos/index.json`` lists (their names relative to
+    the model), in its order; ValueError naming the entry when one is not a JPEG under
+    ``photos/`` (never a path out of it) or the index is not worker/photos.py's."""
+    index = json.loads(index_bytes)
+    photos = index.get("photos") if isinstance(index, dict) else None
+    if not isinstance(photos, list):
+        raise ValueError("photos/index.json: no 'photos' list")
+    names = []
+    for i, entry in enumerate(photos):
+        name = entry.get("file") if isinstance(entry, dict) else None
+        if not isinstance(name, str) or not _PHOTO_NAME.match(name) or ".." in name:
+            raise ValueError(
+                f"photos/index.json: photos[{i}].file {name!r} is not photos/<name>.jpg"
+            )
+        names.append(name)
+    return names
+
+
+def face_photo_files(d: Path) -> dict[str, bytes]:
+    """A face model's photographs (``photos/index.json`` and the JPEGs it lists) and gloss
+    (``gloss.png``, ``gloss.json``), name → bytes; the photographs are left out, with a
+    warning, when the index or one of its pictures is unusable (they are an extra: the whole
+    tablet is still made), never copied in part."""
+    out = {name: (d / name).read_bytes() for name in GLOSS_FILES if (d / name).is_file()}
+    index = d / "photos" / "index.json"
+    if not index.is_file():
+        return out
+    try:
+        data = index.read_bytes()
+        photos = {name: (d / name).read_bytes() for name in photo_asset_names(data)}
+    except (ValueError, OSError) as exc:
+        log.warning("%s: photographs left out: %s", d, exc)
+        return out
+    return out | photos | {"photos/index.json": data}
 
 
 def png_bytes(image: np.ndarray, *, px_per_mm: float, description: str) -> bytes:

@@ -5,7 +5,8 @@ Fetches the latest model of each scan of the job's tablet, registers them
 model (no scan) through ``backend.jobs.mark_succeeded``: its assets are ``model.glb`` (the
 one-node-per-face scene, so the viewer shows the whole tablet), ``faces/<label>/*.png`` (each
 face's full-resolution normals blended across the seams, quality weight and shading maps),
-``faces/<label>/quality/*.npy`` (the face's quality maps), ``merged.ply``,
+``faces/<label>/quality/*.npy`` (the face's quality maps), ``faces/<label>/photos/*`` and
+``faces/<label>/gloss.*`` (the face's photographs and measured gloss), ``merged.ply``,
 ``transforms.json``, ``report.json``, ``fatcross/*.png`` and ``tiles/`` (each face's
 streaming tiles and the root tileset, ``worker.tiles.tablet``).
 """
@@ -28,10 +29,12 @@ from backend.licences import effective
 from backend.tables import Job, Model, Tablet
 from worker.assets import AssetError, derive_assets
 from worker.register.io import (
+    GLOSS_FILES,
     QUALITY_MAPS,
     SHADING_MAPS,
     RegisterInputError,
     face_asset_dir,
+    photo_asset_names,
     write_output_dir,
 )
 from worker.register.plates import DEFAULT_LICENCE
@@ -51,7 +54,26 @@ MODEL_FILES = (
     "albedo.png",
     *SHADING_MAPS,
     *(f"quality/{name}" for name in QUALITY_MAPS),
+    *GLOSS_FILES,
 )
+
+
+def _fetch_photos(storage, prefix: str, d: Path) -> None:
+    """The face model's photographs (``photos/index.json`` and the JPEGs it lists) into
+    ``d/photos``; none when the model has no index or it is unusable (logged: they are an
+    extra, the registration goes on without them)."""
+    if not storage.exists(f"{prefix}/photos/index.json"):
+        return
+    (d / "photos").mkdir(exist_ok=True)
+    index = storage.get_file(f"{prefix}/photos/index.json", d / "photos" / "index.json")
+    try:
+        names = photo_asset_names(index.read_bytes())
+    except ValueError as exc:
+        log.warning("%s: photographs left out: %s", prefix, exc)
+        return
+    for name in names:
+        if storage.exists(f"{prefix}/{name}"):
+            storage.get_file(f"{prefix}/{name}", d / name)
 
 
 def _latest_models(session, tablet_id: int) -> list[tuple[int, str]]:
@@ -136,6 +158,7 @@ def run_job(job_id: int, session_factory, storage, progress: Callable[..., None]
             for file in MODEL_FILES:
                 if storage.exists(f"{prefix}/{file}"):
                     storage.get_file(f"{prefix}/{file}", d / file)
+            _fetch_photos(storage, prefix, d)
             dirs.append(str(d))
         progress("register", 0.2, force=True)
         safe = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in name)

@@ -67,7 +67,9 @@ def face_files(label: str, raw: dict, *, normals: np.ndarray | None = None) -> d
     node of that face carries the image-grid TEXCOORD_0 and the scan → tablet transform):
     ``faces/<label>/normals.png`` (``normals``, default the face's own, in its scan frame,
     with the face's own quality weight in alpha, `face_normal_map`), the face model's shading
-    maps (curvature, accessibility) and its quality maps (``quality/*.npy``) as they are.
+    maps (curvature, accessibility), its quality maps (``quality/*.npy``), photographs
+    (``photos/index.json`` and JPEGs) and measured gloss (``gloss.png``/``gloss.json``) as they
+    are.
     The albedo is the node's baseColorTexture in model.glb."""
     prefix = face_asset_dir(label)
     own = face_weight(raw["normals"], raw["mask"], pixel_size_um=raw["pixel_size_um"])
@@ -82,6 +84,8 @@ def face_files(label: str, raw: dict, *, normals: np.ndarray | None = None) -> d
         out[f"{prefix}/{name}"] = data
     for name, data in raw.get("quality_maps", {}).items():
         out[f"{prefix}/quality/{name}"] = data
+    for name, data in raw.get("photo_files", {}).items():
+        out[f"{prefix}/{name}"] = data
     return out
 
 
@@ -176,7 +180,11 @@ def register_model_dirs(
         "faces": {
             c.label: {
                 "assets": face_asset_dir(c.label),
+                "face": c.face,
+                "pixel_size_um": raw["pixel_size_um"],
                 "quality_maps": sorted(raw.get("quality_maps", {})),
+                "photos": "photos/index.json" in raw.get("photo_files", {}),
+                "gloss": "gloss.png" in raw.get("photo_files", {}),
             }
             for c, raw in loaded
         },

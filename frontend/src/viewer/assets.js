@@ -133,7 +133,8 @@ export function faceAssetPrefix(name) {
   return `faces/${safe.replace(/^\.+|\.+$/g, '') || '_'}`;
 }
 
-/** A face's own maps among the assets: {normals, curvature: [], accessibility} (names or null). */
+/** A face's own maps among the assets: {normals, curvature: [], accessibility, gloss, glossInfo}
+ * (names or null). */
 export function classifyFaceAssets(assets, name) {
   const prefix = `${faceAssetPrefix(name)}/`;
   const own = Object.fromEntries(
@@ -147,6 +148,8 @@ export function classifyFaceAssets(assets, name) {
     normals: full(c.normals),
     curvature: c.curvature.map(full),
     accessibility: full(c.accessibility),
+    gloss: full(c.gloss),
+    glossInfo: full(c.glossInfo),
   };
 }
 
@@ -275,6 +278,17 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
     if (t) created.push(t);
     return t;
   };
+  /** {texture, scale, exponent} of a gloss.png + gloss.json pair, or null (a fit that stood down). */
+  async function loadGloss(pngName, infoName) {
+    const [pngBuf, infoBuf] = await Promise.all([get(pngName), get(infoName)]);
+    const info = JSON.parse(new TextDecoder().decode(infoBuf));
+    if (!(Number(info.strength_scale) > 0 && Number(info.exponent) > 0)) return null;
+    return {
+      texture: track(await bytesToTexture(pngBuf, { srgb: false })),
+      scale: Number(info.strength_scale),
+      exponent: Number(info.exponent),
+    };
+  }
   out.dispose = () => {
     out.geometry?.dispose();
     for (const t of created) disposeTexture(t);
@@ -292,17 +306,20 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
     out.parts = parts.map((p) => p.name);
     out.faces = parts.map((p) => ({
       name: p.name,
-      assets: p.hasUv ? classifyFaceAssets(assets, p.name) : { normals: null, curvature: [], accessibility: null },
+      assets: p.hasUv ? classifyFaceAssets(assets, p.name) : { normals: null, curvature: [], accessibility: null, gloss: null },
       rotation: p.rotation,
       albedo: track(p.albedo),
       normals: null,
       curvature: null,
       accessibility: null,
+      gloss: null,
     }));
-    // Every face's full-resolution normals load with the mesh (they are what relights it).
+    // Every face's full-resolution normals load with the mesh (they are what relights it),
+    // and its measured gloss (natural colour) where its scan had one.
     await Promise.all(
       out.faces.map(async (f) => {
         if (f.assets.normals) f.normals = track(await bytesToTexture(await get(f.assets.normals), { srgb: false }));
+        if (f.assets.gloss && f.assets.glossInfo) f.gloss = await loadGloss(f.assets.gloss, f.assets.glossInfo);
       }),
     );
     out.normals = normalsBuf ? track(await bytesToTexture(normalsBuf, { srgb: false })) : null;
@@ -312,17 +329,7 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
     } else {
       out.albedo = track(glbAlbedo); // the GLB's baseColorTexture is the same albedo
     }
-    if (names.gloss && names.glossInfo) {
-      const [pngBuf, infoBuf] = await Promise.all([get(names.gloss), get(names.glossInfo)]);
-      const info = JSON.parse(new TextDecoder().decode(infoBuf));
-      if (Number(info.strength_scale) > 0 && Number(info.exponent) > 0) {
-        out.gloss = {
-          texture: track(await bytesToTexture(pngBuf, { srgb: false })),
-          scale: Number(info.strength_scale),
-          exponent: Number(info.exponent),
-        };
-      }
-    }
+    if (names.gloss && names.glossInfo) out.gloss = await loadGloss(names.gloss, names.glossInfo);
   } catch (err) {
     out.dispose();
     throw err;

@@ -270,7 +270,10 @@ export const PART_UNIFORMS = Object.freeze([
   'uHasTexture',
   'uTexelSize',
   'uSeamDepthMm',
+  'uGlossMap', // each face its own scan's measured gloss (worker/photos.py)
   'uHasGlossMap',
+  'uGlossScale',
+  'uGlossExponent',
   'uTrustMap', // trust maps are per scan, as quality maps: a face has none of its own
   'uHasTrust',
 ]);
@@ -280,7 +283,8 @@ export const PART_UNIFORMS = Object.freeze([
  * with the light, mode and camera uniforms SHARED with `base` (the same objects: setting the
  * light once lights every face) and the maps of {@link PART_UNIFORMS} its own.
  * @param {THREE.ShaderMaterial} base from {@link createRelightMaterial}
- * @param {{rotation: THREE.Matrix3, normals: THREE.Texture | null, albedo: THREE.Texture | null}} face
+ * @param {{rotation: THREE.Matrix3, normals: THREE.Texture | null, albedo: THREE.Texture | null,
+ *   gloss?: {texture: THREE.Texture, scale: number, exponent: number} | null}} face
  *   the face's scan → tablet rotation and maps (assets.js' `faces`)
  * @param {{seamDepthMm: number}} options how far a fragment of weight 0 is pushed back
  * @returns {THREE.ShaderMaterial}
@@ -300,7 +304,11 @@ export function createPartMaterial(base, face, { seamDepthMm }) {
   const img = face.normals?.image ?? face.albedo?.image;
   uniforms.uTexelSize.value.set(img ? 1 / img.width : 1, img ? 1 / img.height : 1);
   uniforms.uSeamDepthMm.value = seamDepthMm;
-  uniforms.uHasGlossMap.value = false; // a whole tablet's faces carry no measured gloss yet
+  // The face's measured gloss (assets.js' `gloss`), none for a face whose scan had none.
+  uniforms.uGlossMap.value = face.gloss?.texture ?? blank;
+  uniforms.uHasGlossMap.value = Boolean(face.gloss);
+  uniforms.uGlossScale.value = face.gloss?.scale ?? 0;
+  uniforms.uGlossExponent.value = face.gloss?.exponent ?? 32;
   return new THREE.ShaderMaterial({
     name: 'RelightPartMaterial',
     glslVersion: THREE.GLSL3,

@@ -1,10 +1,15 @@
 /**
  * The photograph beside the render: the worker keeps every light's photograph of a scan
  * (`photos/index.json`, worker/photos.py); this picks the one taken nearest to the viewer's
- * light, and places it over the canvas, aligned with the model, for a swipe comparison.
+ * light, and places it over the canvas, aligned with the model, for a swipe comparison. A
+ * whole tablet keeps each face's photographs (`faces/<label>/photos/`): the face in view is
+ * shown, under the light turned into that face's scan frame (photoFaces.js).
  *
  * Pure functions first (no DOM, no three.js); `bindPhotoPanel` at the end is the page glue.
  */
+
+import { lightAngles, lightDirection } from './light.js';
+import { faceFrames, faceInView, scanToTabletDir, scanToTabletPoint, tabletToScanDir } from './photoFaces.js';
 
 const DEG = 180 / Math.PI;
 
@@ -54,49 +59,103 @@ export function describePhoto({ photo, angleDeg }) {
   return `${what} taken under the light at azimuth ${az}°, polar ${polar}° (${off}).`;
 }
 
+/** Caption of a whole tablet's photograph: the face first. */
+export function describeFacePhoto(found, faceLabel) {
+  return faceLabel ? `Face ${faceLabel}: ${describePhoto(found)}` : describePhoto(found);
+}
+
+const IDENTITY = { rotation: [[1, 0, 0], [0, 1, 0], [0, 0, 1]], translationMm: [0, 0, 0] };
+
+async function fetchJson(url) {
+  const response = await fetch(url, { credentials: 'same-origin' });
+  if (!response.ok) return null;
+  return response.json();
+}
+
+/** A parsed photos/index.json that lists at least one photograph, else null. */
+function usableIndex(parsed) {
+  return parsed && Array.isArray(parsed.photos) && parsed.photos.length ? parsed : null;
+}
+
+/**
+ * The photograph sources of a model: a face model's own stack (one source, scan frame = world),
+ * or each face of a whole tablet that kept its photographs (photoFaces.js' frames).
+ */
+async function photoSources(model, href) {
+  const assets = model?.assets ?? {};
+  const url = (name) => (assets[name] ? href(assets[name]) : null);
+  if (model?.scan_id != null) {
+    const index = url('photos/index.json') && usableIndex(await fetchJson(url('photos/index.json')));
+    const pixelMm = Number(model?.report?.pixel_size_um) / 1000 || null;
+    return index ? [{ ...IDENTITY, label: null, face: null, prefix: '', pixelMm, index }] : [];
+  }
+  if (!url('transforms.json')) return [];
+  const frames = faceFrames(await fetchJson(url('transforms.json')), model?.report ?? {});
+  const withPhotos = frames.filter((f) => assets[`${f.prefix}photos/index.json`]);
+  const indexes = await Promise.all(withPhotos.map((f) => fetchJson(url(`${f.prefix}photos/index.json`)).catch(() => null)));
+  return withPhotos.map((f, i) => ({ ...f, index: usableIndex(indexes[i]) })).filter((f) => f.index);
+}
+
 /**
  * Bind the photograph panel of the tablet page.
- * @param {object} viewer createViewer's API (lightWorld, project, setLight, getState)
- * @param {object} els {controls, show, swipe, swipeAt, useLight, panel, img, caption, layer, layerImg}
+ * @param {object} viewer createViewer's API (lightWorld, project, setLight, getState, pick)
+ * @param {object} els {canvas, controls, show, swipe, swipeAt, useLight, panel, img, caption, layer, layerImg}
  * @returns {{setModel(model: object|null, href: (url: string) => string): Promise<void>, changed(): void}}
  */
 export function bindPhotoPanel(viewer, els) {
-  let index = null;
+  let sources = []; // {index, rotation, translationMm, prefix, label, face, pixelMm}
   let base = null; // asset name → URL
-  let current = null;
-  let sourceSize = null;
-  let pixelMm = null;
+  let current = null; // {photo, angleDeg, source}
+  let generation = 0;
+
+  /** The face in view: the one under the screen centre, else the one facing the camera. */
+  function sourceInView() {
+    if (sources.length === 1) return sources[0];
+    const rect = els.canvas?.getBoundingClientRect();
+    const hit = rect ? viewer.pick(rect.left + rect.width / 2, rect.top + rect.height / 2) : null;
+    const under = hit?.part != null && sources.find((s) => s.label === hit.part);
+    if (under) return under;
+    const { position, target } = viewer.getState().camera;
+    const dir = target.map((t, i) => t - position[i]);
+    return faceInView(sources, dir)?.face ?? sources[0];
+  }
 
   function update() {
-    if (!index || !els.show.checked) {
+    if (!sources.length || !els.show.checked) {
       els.panel.hidden = true;
       els.layer.hidden = true;
       return;
     }
-    const found = nearestPhoto(index, viewer.lightWorld());
+    const source = sourceInView();
+    // The photographs' lights are in their face's scan frame: the light turned into it.
+    const found = nearestPhoto(source.index, tabletToScanDir(source, viewer.lightWorld()));
     if (!found) return;
-    if (current?.photo.file !== found.photo.file) {
-      els.img.src = base[found.photo.file];
-      els.layerImg.src = base[found.photo.file];
-      els.img.alt = describePhoto(found);
+    const name = source.prefix + found.photo.file;
+    const caption = describeFacePhoto(found, source.label);
+    if (current?.name !== name) {
+      els.img.src = base[name];
+      els.layerImg.src = base[name];
     }
-    current = found;
-    els.caption.textContent = describePhoto(found);
+    els.img.alt = caption;
+    current = { ...found, source, name };
+    els.caption.textContent = caption;
+    els.panel.dataset.face = source.label ?? '';
     els.panel.hidden = false;
     els.layer.hidden = !els.swipe.checked;
     if (els.swipe.checked) place();
   }
 
-  /** Align the swipe layer's photograph with the model: its corners projected to the page. */
+  /** Align the swipe layer's photograph with its face: the image corners projected to the page. */
   function place() {
-    if (!sourceSize || !pixelMm) return;
-    const [w, h] = sourceSize;
+    const source = current?.source;
+    if (!source?.pixelMm || !Array.isArray(source.index.source_size_px)) return;
+    const [w, h] = source.index.source_size_px;
     const stage = els.layer.getBoundingClientRect();
     const at = (col, row) => {
-      const p = viewer.project([col * pixelMm, row * pixelMm, 0]);
+      const p = viewer.project(scanToTabletPoint(source, [col * source.pixelMm, row * source.pixelMm, 0]));
       return { x: p.x - stage.left, y: p.y - stage.top };
     };
-    const [iw, ih] = index.size_px;
+    const [iw, ih] = source.index.size_px;
     els.layerImg.style.width = `${iw}px`;
     els.layerImg.style.height = `${ih}px`;
     els.layerImg.style.transform = cornerMatrix(iw, ih, at(-0.5, -0.5), at(w - 0.5, -0.5), at(-0.5, h - 0.5));
@@ -105,33 +164,39 @@ export function bindPhotoPanel(viewer, els) {
 
   els.show.addEventListener('change', update);
   els.swipe.addEventListener('change', () => {
-    // The photograph is the camera's straight view of the face: compare it in that view.
-    if (els.swipe.checked) viewer.setView('obverse');
+    // The photograph is the camera's straight view of its face: compare it in that view
+    // (a face model's only view; on a whole tablet the canonical view of the face in view).
+    if (els.swipe.checked) {
+      const face = sources.length ? sourceInView().face : null;
+      const views = viewer.views ?? [];
+      viewer.setView(face && views.includes(face) ? face : 'obverse');
+    }
     update();
   });
   els.swipeAt.addEventListener('input', () => place());
   els.useLight.addEventListener('click', () => {
     if (!current) return;
-    viewer.setLight({ follow: false, azimuthDeg: current.photo.azimuth_deg, polarDeg: current.photo.polar_deg });
+    const { photo, source } = current;
+    if (!source.label) {
+      viewer.setLight({ follow: false, azimuthDeg: photo.azimuth_deg, polarDeg: photo.polar_deg });
+      return;
+    }
+    // The photograph's light, from its face's scan frame into the tablet frame.
+    const world = scanToTabletDir(source, lightDirection(photo.azimuth_deg, photo.polar_deg));
+    viewer.setLight({ follow: false, ...lightAngles(world) });
   });
 
   return {
     async setModel(model, href) {
-      index = null;
+      const mine = ++generation;
+      sources = [];
       current = null;
       els.controls.hidden = true;
       update();
-      const assets = model?.assets ?? {};
-      // Face models only: a whole tablet's faces keep their photographs in their own scans.
-      if (!assets['photos/index.json'] || model?.scan_id == null) return;
-      const response = await fetch(href(assets['photos/index.json']), { credentials: 'same-origin' });
-      if (!response.ok) return;
-      const parsed = await response.json();
-      if (!Array.isArray(parsed.photos) || !parsed.photos.length) return;
-      base = Object.fromEntries(Object.entries(assets).map(([k, v]) => [k, href(v)]));
-      index = parsed;
-      sourceSize = parsed.source_size_px;
-      pixelMm = Number(model?.report?.pixel_size_um) / 1000 || null;
+      const found = await photoSources(model, href);
+      if (mine !== generation || !found.length) return; // another model was opened meanwhile
+      base = Object.fromEntries(Object.entries(model.assets ?? {}).map(([k, v]) => [k, href(v)]));
+      sources = found;
       els.controls.hidden = false;
       update();
     },

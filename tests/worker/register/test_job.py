@@ -65,6 +65,14 @@ def _tablet_with_models(settings, model_dirs, *, p_number: str | None = None) ->
 @pytest.mark.slow
 def test_register_job_stores_a_tablet_model_with_plates(env, tmp_path):
     dirs, _ = write_gt_model_dirs(tmp_path / "models", size=(64, 52))
+    # The first face model has its photographs and gloss (worker/photos.py); the others none.
+    photo = "photos/000-photometric-az045.0.jpg"
+    (dirs[0] / "photos").mkdir()
+    (dirs[0] / photo).write_bytes(b"\xff\xd8 a photograph")
+    index = {"version": 1, "photos": [{"file": photo, "light": [0.5, 0, -0.87]}]}
+    (dirs[0] / "photos" / "index.json").write_text(json.dumps(index))
+    (dirs[0] / "gloss.png").write_bytes(b"\x89PNG gloss")
+    (dirs[0] / "gloss.json").write_text('{"strength_scale": 0.4, "exponent": 32}')
     job_id = _tablet_with_models(env, dirs)
     assert tasks.register_tablet.apply(args=[job_id]).get() == "succeeded"
     with capp.session_factory()() as session:
@@ -84,6 +92,14 @@ def test_register_job_stores_a_tablet_model_with_plates(env, tmp_path):
         for d in dirs:
             assert f"faces/sim-0-{d.name}/normals.png" in model.assets, sorted(model.assets)
         assert model.report["pairs"]
+        # The face's photographs and gloss come with it, under its folder.
+        storage = storage_from_settings(env)
+        first = f"faces/sim-0-{dirs[0].name}"
+        for name in (photo, "photos/index.json", "gloss.png", "gloss.json"):
+            assert f"{first}/{name}" in model.assets, name
+            stored = storage.read_bytes(f"{model.storage_prefix}/{first}/{name}")
+            assert stored == (dirs[0] / name).read_bytes(), name
+        assert not any(f"sim-0-{d.name}/photos" in n for d in dirs[1:] for n in model.assets)
         # The whole tablet streams face by face: a root tileset over the faces' tilesets.
         assert {n for n in model.assets if n.startswith("tiles/")} == {
             "tiles/index.json",

@@ -107,3 +107,72 @@ def test_each_face_carries_its_quality_maps_on_its_own_grid(gt, tmp_path):
         got = np.load(io.BytesIO(files[f"{prefix}/photometric_residual.npy"]))
         np.testing.assert_array_equal(got, expected[cloud.face])
         assert np.load(io.BytesIO(files[f"{prefix}/guard.npy"])).max() == k
+
+
+def _add_photos(d: Path, k: int) -> dict[str, bytes]:
+    """A face model's photographs and gloss as worker/photos.py writes them (small stand-ins)."""
+    (d / "photos").mkdir()
+    files = {
+        f"photos/000-photometric-az{k:05.1f}.jpg": b"\xff\xd8 face %d light 0" % k,
+        f"photos/001-color-az{k:05.1f}.jpg": b"\xff\xd8 face %d light 1" % k,
+        "gloss.png": b"\x89PNG gloss of face %d" % k,
+        "gloss.json": json.dumps({"strength_scale": 0.5, "exponent": 30 + k}).encode(),
+    }
+    entries = [
+        {"file": n, "kind": "photometric", "light": [0, 0, -1]} for n in files if "photos/" in n
+    ]
+    files["photos/index.json"] = json.dumps({"version": 1, "photos": entries}).encode()
+    for name, data in files.items():
+        (d / name).write_bytes(data)
+    return files
+
+
+def test_each_face_carries_its_photographs_and_gloss(gt, tmp_path):
+    import shutil
+
+    paths, truths = gt
+    copies, expected = [], {}
+    for k, path in enumerate(paths):
+        d = Path(shutil.copytree(path, tmp_path / path.name))
+        copies.append(d)
+        expected[path.name] = _add_photos(d, k) if k % 2 == 0 else {}
+    loaded = [load_model_dir(p) for p in copies]
+    files = whole_tablet_model(loaded, truths)
+    for cloud, _ in loaded:
+        prefix = face_asset_dir(cloud.label)
+        got = {
+            n.removeprefix(f"{prefix}/"): files[n]
+            for n in files
+            if n.startswith(f"{prefix}/photos/") or n.startswith(f"{prefix}/gloss.")
+        }
+        assert got == expected[cloud.face], cloud.label
+
+
+@pytest.mark.parametrize(
+    "bad",
+    ["../../report.json", "photos/../height.npy", "/etc/passwd", "photos/a.png", None],
+)
+def test_a_photo_index_naming_a_file_out_of_photos_is_never_followed(gt, tmp_path, bad, caplog):
+    import shutil
+
+    paths, _ = gt
+    d = Path(shutil.copytree(paths[0], tmp_path / paths[0].name))
+    files = _add_photos(d, 0)
+    index = json.loads(files["photos/index.json"])
+    index["photos"].append({"file": bad, "light": [0, 0, -1]})
+    (d / "photos" / "index.json").write_text(json.dumps(index))
+    _, raw = load_model_dir(d)
+    # The gloss still comes; the photographs do not, not even those the index named rightly.
+    assert sorted(raw["photo_files"]) == ["gloss.json", "gloss.png"]
+    assert "photographs left out" in caplog.text and "photos[2].file" in caplog.text
+
+
+def test_a_photo_the_index_lists_but_the_model_lacks_leaves_the_photographs_out(gt, tmp_path):
+    import shutil
+
+    paths, _ = gt
+    d = Path(shutil.copytree(paths[0], tmp_path / paths[0].name))
+    files = _add_photos(d, 0)
+    (d / next(n for n in files if n.endswith(".jpg"))).unlink()
+    _, raw = load_model_dir(d)
+    assert sorted(raw["photo_files"]) == ["gloss.json", "gloss.png"]
