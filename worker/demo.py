@@ -49,6 +49,7 @@ DEMO_FACES = ("obverse", "top", "bottom", "left", "right", "reverse")
 # A small tablet (mm): at the paper's 26.8 µm per pixel its six faces simulate, reconstruct
 # and register within about five minutes on two cores (docs/benchmarks.md, "make demo").
 DEMO_TABLET_MM = (14.0, 11.0, 7.0)
+DEMO_STALE_AFTER_S = 600
 FALLBACK_CATALOGUE = (
     "key,designation,museum_no,period,provenience,genre,language\n"
     "P000001,Demo tablet,Demo 1,Old Babylonian,Sippar,legal,Akkadian\n"
@@ -410,7 +411,13 @@ def run_demo(args: argparse.Namespace) -> int:
     if data_dir.exists():
         shutil.rmtree(data_dir)
     data_dir.mkdir(parents=True)
-    library = LocalLibrary(data_dir, port=args.port)
+    # A running job whose heartbeat is this old is taken over by another worker process.
+    # The default (15 s) suits servers; on a busy one-machine demo a long registration step
+    # can starve its heartbeat thread for longer, and with two worker processes the other
+    # one then takes the registration over and starts it again, over and over.
+    library = LocalLibrary(
+        data_dir, port=args.port, env={"HAMMURABI_JOB_STALE_AFTER_S": str(DEMO_STALE_AFTER_S)}
+    )
     try:
         catalogue = find_catalogue()
         if catalogue is None:
@@ -596,7 +603,13 @@ def main(argv: list[str] | None = None) -> int:
         default=cores,
         help=f"reconstructions the worker runs at a time (default {cores})",
     )
-    parser.add_argument("--timeout", type=float, default=900.0, help="seconds for the jobs")
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        default=1800.0,
+        help="seconds to wait for the reconstructions, then for the registration (default "
+        "1800: a busy machine can take far longer than the ~5 minutes of a free one)",
+    )
     parser.add_argument(
         "--exit-when-ready", action="store_true", help="stop once the models are ready"
     )
