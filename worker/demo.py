@@ -4,14 +4,16 @@
 2. the real ORACC catalogue imported (``../shared/data/oracc-catalogue`` next to the repo, or
    ``HAMMURABI_DEMO_CATALOGUE``; without it a one-record catalogue, said clearly);
 3. ``hammurabi serve`` and ``hammurabi worker`` started as real processes;
-4. the six faces of a tablet simulated (``worker.simulate``, quick preset) one after the
-   other at the paper's resolution, 26.8 µm per pixel (1280 × 1024 px over the paper's
-   34.3 × 27.4 mm field; ``--width/--height`` choose a coarser one, e.g. for CI), each bundle
-   marked ``scan.tablet.simulated = "true"`` (free metadata, SCAN_BUNDLE.md) and uploaded as
-   soon as it is simulated through the API by the rig agent's spool and upload client, like
-   a rig, so that the worker reconstructs it while the next face is simulated;
-5. the reconstruction followed on the job rows (a progress line per face), then the
-   worker's automatic registration of all six faces (whole tablet, fatcross plates);
+4. the six faces of a small tablet (``--tablet-mm``, default 14 × 11 × 7 mm) simulated
+   (``worker.simulate``, quick preset) at the paper's resolution, 26.8 µm per pixel, each
+   face's frame following the tablet (about 640 × 530 px for the obverse; ``--pixel-um``
+   chooses a coarser pixel, e.g. for CI), two faces at a time; each bundle marked
+   ``scan.tablet.simulated = "true"`` (free metadata, SCAN_BUNDLE.md) and the six uploaded
+   together through the API by the rig agent's spool and upload client, like a rig;
+5. a worker started once the six are in (two reconstructions at a time), the
+   reconstructions followed on the job rows (a progress line per face), then the worker's
+   automatic registration of the six faces, started once, when the last face is
+   reconstructed (whole tablet, fatcross plates);
 6. the library's address, the whole tablet's link and a staff login printed; serving until
    Ctrl-C (``--exit-when-ready``: stop once the models are ready, for tests).
 
@@ -35,15 +37,19 @@ import tempfile
 import time
 import zipfile
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import httpx
 
 REPO = Path(__file__).resolve().parent.parent
 CATALOGUE_FILE = "oracc_catalogue_merged.csv"
-# Upload order: every prefix of it overlaps (the edges join obverse and reverse), so each
-# registration the worker starts while faces are still arriving can place what it has.
+# Upload order (every prefix of it overlaps: the edges join obverse and reverse).
 DEMO_FACES = ("obverse", "top", "bottom", "left", "right", "reverse")
+# A small tablet (mm): at the paper's 26.8 µm per pixel its six faces simulate, reconstruct
+# and register within about five minutes on two cores (docs/benchmarks.md, "make demo").
+DEMO_TABLET_MM = (14.0, 11.0, 7.0)
+DEMO_STALE_AFTER_S = 600
 FALLBACK_CATALOGUE = (
     "key,designation,museum_no,period,provenience,genre,language\n"
     "P000001,Demo tablet,Demo 1,Old Babylonian,Sippar,legal,Akkadian\n"
@@ -91,6 +97,11 @@ class LocalLibrary:
             # A fresh random key per demo: nothing signing sessions comes from the source tree.
             "HAMMURABI_SECRET_KEY": secrets.token_urlsafe(48),
             "PYTHONUNBUFFERED": "1",
+            # The service and the workers run this checkout's code, whatever the virtual
+            # environment's editable install points to (they start in the data directory).
+            "PYTHONPATH": os.pathsep.join(
+                [str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]
+            ),
             **(env or {}),
         }
         self.server: subprocess.Popen | None = None
@@ -153,9 +164,10 @@ class LocalLibrary:
             time.sleep(0.2)
         raise RuntimeError(f"the service did not answer in {timeout_s:.0f} s")
 
-    def start_worker(self, name: str | None = None) -> subprocess.Popen:
+    def start_worker(self, name: str | None = None, *, concurrency: int = 1) -> subprocess.Popen:
         name = name or f"w{len(self.workers) + 1}"
-        proc = self._spawn(["worker", "--hostname", f"{name}@%h"], f"worker-{name}.log")
+        args = ["worker", "--hostname", f"{name}@%h", "--concurrency", str(concurrency)]
+        proc = self._spawn(args, f"worker-{name}.log")
         self.workers.append(proc)
         return proc
 
@@ -253,12 +265,27 @@ class LocalLibrary:
                 time.sleep(0.3)
 
 
-def simulate_face_zip(out_dir: Path, face: str, *, seed: int, size: tuple[int, int]) -> Path:
-    """Simulate one face (quick preset) and zip its bundle, marked simulated; the simulator's
-    files are removed once zipped (at the paper's resolution a face is ~0.5 GB)."""
+def simulate_face_zip(
+    out_dir: Path,
+    face: str,
+    *,
+    seed: int,
+    tablet_mm: tuple[float, float, float] = DEMO_TABLET_MM,
+    pixel_um: float = 26.8,
+) -> Path:
+    """Simulate one face of a ``tablet_mm`` tablet at ``pixel_um`` (quick preset; the frame
+    follows the tablet) and zip its bundle, marked simulated; the simulator's files are
+    removed once zipped."""
     from worker.simulate import simulate_scan
 
-    result = simulate_scan(out_dir / face, seed=seed, face=face, preset="quick", size=size)
+    result = simulate_scan(
+        out_dir / face,
+        seed=seed,
+        face=face,
+        preset="quick",
+        tablet_mm=tablet_mm,
+        pixel_size_um=pixel_um,
+    )
     plain = Path(shutil.make_archive(str(out_dir / f"{face}-plain"), "zip", result.bundles[face]))
     zipped = rewrite_manifest(plain, out_dir / f"{face}-bundle.zip", mark_simulated)
     plain.unlink()
@@ -365,20 +392,32 @@ def run_demo(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    if args.width < 16 or args.height < 16:
-        print(
-            f"demo: --width/--height must be >= 16, got {args.width}×{args.height}", file=sys.stderr
-        )
-        return 2
-    from worker.simulate.acquisition import pixel_size_for
+    from worker.simulate.tablet import check_size_mm
 
-    pixel_um = pixel_size_for(args.width, args.height)
+    try:
+        check_size_mm(args.tablet_mm)
+    except ValueError as exc:
+        print(f"demo: --tablet-mm: {exc}", file=sys.stderr)
+        return 2
+    if not 5.0 <= args.pixel_um <= 1000.0:
+        print(f"demo: --pixel-um must be 5..1000 µm, got {args.pixel_um:g}", file=sys.stderr)
+        return 2
+    if not (1 <= args.jobs <= 16 and 1 <= args.concurrency <= 16):
+        print("demo: --jobs and --concurrency must be 1..16", file=sys.stderr)
+        return 2
+    pixel_um = args.pixel_um
     progress = Progress(total_steps=6)
     data_dir = Path(args.data_dir).resolve()
     if data_dir.exists():
         shutil.rmtree(data_dir)
     data_dir.mkdir(parents=True)
-    library = LocalLibrary(data_dir, port=args.port)
+    # A running job whose heartbeat is this old is taken over by another worker process.
+    # The default (15 s) suits servers; on a busy one-machine demo a long registration step
+    # can starve its heartbeat thread for longer, and with two worker processes the other
+    # one then takes the registration over and starts it again, over and over.
+    library = LocalLibrary(
+        data_dir, port=args.port, env={"HAMMURABI_JOB_STALE_AFTER_S": str(DEMO_STALE_AFTER_S)}
+    )
     try:
         catalogue = find_catalogue()
         if catalogue is None:
@@ -404,39 +443,44 @@ def run_demo(args: argparse.Namespace) -> int:
             stdin=staff_password + "\n",
         )
 
-        progress.say("starting the library service and a reconstruction worker (embedded broker)")
+        progress.say("starting the library service (embedded broker)")
         library.start_server()
-        library.start_worker("demo")
 
         with library.client() as http:
             items = http.get("/tablets", params={"page_size": 1, "sort": "designation"})
             tablet = items.raise_for_status().json()["items"][0]
         paper = " (the paper's)" if abs(pixel_um - 26.8) < 0.05 else ""
+        size = "×".join(f"{v:g}" for v in args.tablet_mm)
         progress.say(
-            f"simulating the six faces of a tablet (a SIMULATED scan, labelled so) for "
-            f"{tablet['designation']}: quick preset, {args.width}×{args.height} px, "
-            f"{pixel_um:.1f} µm per pixel{paper}; each face is uploaded through the API "
-            "with the rig agent's upload client as soon as it is simulated, and the worker "
-            "reconstructs it while the next one is simulated"
+            f"simulating the six faces of a {size} mm tablet (a SIMULATED scan, labelled so) "
+            f"for {tablet['designation']}: quick preset, {pixel_um:g} µm per pixel{paper}, "
+            f"{args.jobs} faces at a time; then the six are uploaded together through the API "
+            "with the rig agent's upload client, like a rig"
         )
         work = Path(tempfile.mkdtemp(prefix="demo-sim-", dir=data_dir))
+        bundles = simulate_faces(work, args, pixel_um)
         faces, job_ids = [], []
         for face in DEMO_FACES:
-            t0 = time.monotonic()
-            bundle = simulate_face_zip(work, face, seed=args.seed, size=(args.width, args.height))
             t1 = time.monotonic()
-            result = library.upload_bundle_zip(bundle, tablet_id=tablet["id"])
-            bundle.unlink()
+            result = library.upload_bundle_zip(bundles[face], tablet_id=tablet["id"])
+            bundles[face].unlink()
             faces.append(face)
             job_ids.append(result["job"]["id"])
             print(
-                f"      {face}: simulated in {t1 - t0:.0f} s, uploaded in "
-                f"{time.monotonic() - t1:.0f} s (job {result['job']['id']})",
+                f"      {face}: uploaded in {time.monotonic() - t1:.0f} s "
+                f"(job {result['job']['id']})",
                 flush=True,
             )
         shutil.rmtree(work, ignore_errors=True)
 
-        progress.say(f"reconstructing {len(job_ids)} scans on the worker")
+        # The worker starts once the six are in: it then finds them all queued, so the
+        # registration (which waits for the tablet's pending reconstructions) runs once, on
+        # all six, however fast a reconstruction is. Two at a time: the machine has two cores.
+        progress.say(
+            f"reconstructing {len(job_ids)} scans on a reconstruction worker started now "
+            f"({args.concurrency} at a time)"
+        )
+        library.start_worker("demo", concurrency=args.concurrency)
         rows = library.wait_jobs(
             job_ids, timeout_s=args.timeout, on_poll=lambda r: progress.jobs(r, faces)
         )
@@ -445,7 +489,10 @@ def run_demo(args: argparse.Namespace) -> int:
         if failed:
             print("demo: some reconstructions failed:\n  " + "\n  ".join(failed), file=sys.stderr)
             return 1
-        progress.say("registering the six faces into one tablet on the worker (automatic)")
+        progress.say(
+            "registering the six faces into one tablet on the worker (automatic, once the "
+            "last face is reconstructed)"
+        )
         whole = library.wait_tablet_model(tablet["id"], timeout_s=args.timeout, scans=len(job_ids))
         if whole is None:
             print(
@@ -484,6 +531,42 @@ def run_demo(args: argparse.Namespace) -> int:
         library.stop()
 
 
+def simulate_faces(work: Path, args: argparse.Namespace, pixel_um: float) -> dict[str, Path]:
+    """The six faces' bundle ZIPs, simulated ``args.jobs`` at a time in worker processes
+    (numpy renders one frame on one core); a line per face as it is done."""
+    out: dict[str, Path] = {}
+    t0 = time.monotonic()
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        futures = {
+            pool.submit(
+                simulate_face_zip,
+                work,
+                face,
+                seed=args.seed,
+                tablet_mm=tuple(args.tablet_mm),
+                pixel_um=pixel_um,
+            ): face
+            for face in DEMO_FACES
+        }
+        for future in as_completed(futures):
+            face = futures[future]
+            out[face] = future.result()
+            mb = out[face].stat().st_size / 2**20
+            print(
+                f"      {face}: simulated ({mb:.0f} MB) at {time.monotonic() - t0:.0f} s",
+                flush=True,
+            )
+    return out
+
+
+def _tablet_mm(text: str) -> tuple[float, float, float]:
+    try:
+        w, h, t = (float(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WxHxT in mm, got {text!r}") from None
+    return w, h, t
+
+
 def _terminate(signum, _frame) -> None:
     raise KeyboardInterrupt  # SIGTERM stops the demo like Ctrl-C (processes cleaned up)
 
@@ -497,14 +580,36 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--port", type=int, default=8000, help="default 8000 (make demo PORT=N)")
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument(
-        "--width",
-        type=int,
-        default=1280,
-        help="image width in px (default 1280: with --height 1024, the paper's 26.8 µm per "
-        "pixel; smaller sizes are coarser, e.g. 64×80 for a quick CI run)",
+        "--tablet-mm",
+        type=_tablet_mm,
+        default=DEMO_TABLET_MM,
+        metavar="WxHxT",
+        help="the simulated tablet's width, height and thickness in mm (default 14x11x7)",
     )
-    parser.add_argument("--height", type=int, default=1024, help="image height in px")
-    parser.add_argument("--timeout", type=float, default=900.0, help="seconds for the jobs")
+    parser.add_argument(
+        "--pixel-um",
+        type=float,
+        default=26.8,
+        help="pixel size on the tablet in µm (default 26.8, the paper's; each face's frame "
+        "follows the tablet; e.g. 400 for a quick CI run)",
+    )
+    cores = max(1, min(2, os.cpu_count() or 1))
+    parser.add_argument(
+        "--jobs", type=int, default=cores, help=f"faces simulated at a time (default {cores})"
+    )
+    parser.add_argument(
+        "--concurrency",
+        type=int,
+        default=cores,
+        help=f"reconstructions the worker runs at a time (default {cores})",
+    )
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        default=1800.0,
+        help="seconds to wait for the reconstructions, then for the registration (default "
+        "1800: a busy machine can take far longer than the ~5 minutes of a free one)",
+    )
     parser.add_argument(
         "--exit-when-ready", action="store_true", help="stop once the models are ready"
     )

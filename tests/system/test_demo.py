@@ -47,6 +47,21 @@ def test_a_busy_port_gets_a_clear_message(tmp_path, capsys):
     assert not (tmp_path / "demo").exists()  # nothing done before the check
 
 
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--tablet-mm", "3x3x2"], "--tablet-mm"),
+        (["--tablet-mm", "20x20x30"], "thickness"),
+        (["--pixel-um", "0.5"], "--pixel-um"),
+        (["--jobs", "0"], "--jobs"),
+    ],
+)
+def test_impossible_demo_settings_get_a_clear_message(tmp_path, capsys, args, message):
+    code = main(["--port", str(free_port()), "--data-dir", str(tmp_path / "demo"), *args])
+    assert code == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "demo").exists()
+
+
 def test_simulated_bundles_say_so_in_free_metadata(tmp_path):
     src = tmp_path / "in.zip"
     with zipfile.ZipFile(src, "w") as z:
@@ -65,8 +80,9 @@ def test_demo_reconstructs_a_whole_tablet_and_prints_a_working_url(tmp_path):
     real = find_catalogue()
     assert real is not None, "the ORACC catalogue is expected at ../shared/data/oracc-catalogue"
     # The first records of the real catalogue: same format, a fraction of the import time.
-    # 64×80 px (429 µm per pixel) runs the default's code path at a size CI can afford; the
-    # default (1280×1024, the paper's 26.8 µm) is measured by hand (docs/simulator.md).
+    # 200 µm pixels run the default's code path (the small tablet, each face's frame
+    # following it) at a size CI can afford; the default (the paper's 26.8 µm) is measured
+    # by hand (docs/benchmarks.md, "make demo").
     small = tmp_path / "catalogue.csv"
     with real.open(encoding="utf-8") as fh:
         head = [next(fh) for _ in range(300)]
@@ -76,7 +92,7 @@ def test_demo_reconstructs_a_whole_tablet_and_prints_a_working_url(tmp_path):
     data_dir = tmp_path / "demo"
     result = subprocess.run(
         [sys.executable, "-m", "worker.demo", "--exit-when-ready", "--data-dir", str(data_dir)]
-        + ["--port", str(free_port()), "--width", "64", "--height", "80", "--timeout", "400"],
+        + ["--port", str(free_port()), "--pixel-um", "200", "--timeout", "400"],
         cwd=REPO,
         env=env,
         capture_output=True,
@@ -97,10 +113,10 @@ def test_demo_reconstructs_a_whole_tablet_and_prints_a_working_url(tmp_path):
         faces = {f for (f,) in db.execute("SELECT DISTINCT face FROM scans")}
         face_models = db.execute("SELECT count(*) FROM models WHERE scan_id IS NOT NULL")
         models = face_models.fetchone()[0]
-    # Six face reconstructions, and the whole-tablet registrations the worker starts by itself
-    # as faces arrive (the demo uploads each face as soon as it is simulated; every prefix
-    # of its upload order overlaps, so none fails).
+    # Six face reconstructions, and ONE whole-tablet registration that the worker starts by
+    # itself once the last of the six faces uploaded together is reconstructed.
     assert ("reconstruct", "succeeded", 6) in states
+    assert ("register", "succeeded", 1) in states
     assert {kind for kind, _, _ in states} == {"reconstruct", "register"}
     assert all(state == "succeeded" for _, state, _ in states), states
     assert faces == {"obverse", "reverse", "top", "bottom", "left", "right"}

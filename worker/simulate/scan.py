@@ -38,6 +38,7 @@ from worker.simulate.view import View, cast_grid, render_view
 
 __all__ = [
     "SimulationResult",
+    "face_grid",
     "parse_size",
     "point_truth",
     "scan_rig",
