@@ -282,8 +282,8 @@ export async function openTiledModel({
     // a single map): smoothing over 4 and 16 pixels of this tile's level.
     return [
       { texture, lod: 0, label: 'curvature' },
-      { texture, lod: 2, label: 'curvature, smoothed over 4 px' },
-      { texture, lod: 4, label: 'curvature, smoothed over 16 px' },
+      { texture, lod: 2, label: 'curvature, smoothed over 4 texels' },
+      { texture, lod: 4, label: 'curvature, smoothed over 16 texels' },
     ];
   }
 
@@ -291,6 +291,7 @@ export async function openTiledModel({
     index,
     /** 'face' (one scan's image grid) or 'tablet' (a whole tablet's faces, external tilesets). */
     kind,
+    blank: baseMaterial.userData.blank,
     tiles,
     /** The Object3D to add to the scene. */
     object: tiles.group,
@@ -413,12 +414,21 @@ function errorPerTexel(tiles, pixelSizeUm) {
  */
 export function tiledAssets(tiled) {
   const tile = 'tiles (per tile)';
+  // The curvature scales the page offers (each tile's map and its mip levels, as
+  // curvatureLayers); the textures are the tiles' own, the base material gets the blank.
+  const blank = tiled.blank;
   return {
     names: { curvature: [tile], accessibility: tile, quality: [], height: null },
-    normals: true,
-    albedo: true,
-    curvature: [],
-    accessibility: true,
+    // Textures, never flags: the viewer may put these in the base material's uniforms (shared
+    // by the tiles' materials when a tile is made); each tile then gets its own maps.
+    normals: blank,
+    albedo: blank,
+    curvature: [
+      { name: 'curvature', texture: blank, lod: 0, label: 'curvature (each tile)' },
+      { name: 'curvature', texture: blank, lod: 2, label: 'curvature, smoothed over 4 texels' },
+      { name: 'curvature', texture: blank, lod: 4, label: 'curvature, smoothed over 16 texels' },
+    ],
+    accessibility: blank,
     quality: [],
     faces: [],
     parts: [],
