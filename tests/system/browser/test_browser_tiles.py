@@ -194,11 +194,15 @@ def test_a_tiled_model_streams_relights_and_stays_in_budget(tiled_page, tiled, t
 
     # Every shading mode draws the tiles from their own maps: each view has structure
     # (the wedges) and differs from the others; the per-scan quality maps are not streamed.
-    shots = {}
+    shots, gpu = {}, {}
     for mode in ("natural", "curvature", "accessibility", "relief", "depth", "normals"):
         page.evaluate("m => window.hammurabi.viewer.setShading({ mode: m })", mode)
         shots[mode] = tools.render_pixels(page)
+        gpu[mode] = streaming(page)["bytesUsed"]
         assert shots[mode].std() > 0.02, mode
+    # the curvature and accessibility maps are on the GPU (and counted) only in their modes
+    assert gpu["curvature"] > gpu["natural"] and gpu["accessibility"] > gpu["natural"], gpu
+    assert gpu["relief"] == gpu["natural"], gpu
     names = list(shots)
     for i, a in enumerate(names):
         for b in names[i + 1 :]:
