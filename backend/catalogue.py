@@ -25,6 +25,7 @@ from typing import Any
 from sqlalchemy import insert, select, update
 from sqlalchemy.orm import Session
 
+from backend.atf import MAX_ATF_CHARS
 from backend.tables import Tablet
 
 P_NUMBER = re.compile(r"^[PQX]\d{6}$")
@@ -46,6 +47,7 @@ TEXT_FIELDS: dict[str, int] = {  # column -> max length (as in tables.py)
 }
 LENGTH_FIELDS = {"height": "height_mm", "width": "width_mm", "thickness": "thickness_mm"}
 KEY_FIELDS = ("id_text", "key", "_key", "p_number")
+ATF_FIELD = "atf"  # the transliteration: kept line by line, unlike the one-line text fields
 BLANK_VALUES = {"", "?", "??", "-", "--", "n/a", "na", "none", "null", "unknown", "unk"}
 MAX_LENGTH_MM = 2000.0  # the largest inscribed objects (steles) are ~2.3 m; tablets far less
 _LENGTH = re.compile(r"^(\d+(?:[.,]\d+)?)\s*(mm|cm|m)?\.?$", re.IGNORECASE)
@@ -121,6 +123,23 @@ def _text(value: Any) -> str | None:
     return None if text.lower() in BLANK_VALUES else text
 
 
+def _atf(value: Any) -> tuple[str | None, str | None]:
+    """The ATF text with its lines kept (one newline style, trailing blanks dropped)."""
+    if value is None or isinstance(value, bool) or not isinstance(value, str | list):
+        return (
+            None,
+            None if value is None else f"atf {type(value).__name__} is not text; left blank",
+        )
+    text = "\n".join(value) if isinstance(value, list) else value
+    lines = [line.rstrip() for line in text.replace("\r\n", "\n").replace("\r", "\n").split("\n")]
+    text = "\n".join(lines).strip("\n")
+    if not text.strip():
+        return None, None
+    if len(text) > MAX_ATF_CHARS:
+        return None, f"atf longer than {MAX_ATF_CHARS} characters; left blank"
+    return text, None
+
+
 def _p_number(raw: dict[str, Any]) -> str | None:
     for key in KEY_FIELDS:
         value = raw.get(key)
@@ -147,12 +166,16 @@ def normalize_record(raw: dict[str, Any]) -> tuple[dict[str, Any] | None, list[s
     if fields["language"] is None and raw.get("langs"):
         fields["language"] = _text(raw.get("langs"))
     fields["designation"] = fields["designation"] or fields["museum_no"] or p_number
+    fields[ATF_FIELD], problem = _atf(raw.get(ATF_FIELD))
+    if problem:
+        problems.append(problem)
     for source, column in LENGTH_FIELDS.items():
         length_mm, problem = parse_length_mm(raw.get(source, raw.get(column)))
         if problem:
             problems.append(f"{source} {problem}; left blank")
         fields[column] = length_mm
     used = set(TEXT_FIELDS) | set(LENGTH_FIELDS) | set(LENGTH_FIELDS.values()) | set(KEY_FIELDS)
+    used.add(ATF_FIELD)
     fields["extra"] = {
         k.lstrip("_"): v for k, v in raw.items() if k not in used and v not in (None, "", [], {})
     }
@@ -187,7 +210,7 @@ def read_records(path: Path) -> Iterator[tuple[str, dict[str, Any] | None, str |
         raise ValueError(f"{path}: unknown format {suffix!r}; use .csv or .jsonl")
 
 
-_COMPARED = [*TEXT_FIELDS, "height_mm", "width_mm", "thickness_mm", "extra"]
+_COMPARED = [*TEXT_FIELDS, ATF_FIELD, "height_mm", "width_mm", "thickness_mm", "extra"]
 
 
 def import_catalogue(

@@ -24,6 +24,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from backend.annotations import iiif_annotation, scene_annotation
+
 CONTEXT = "http://iiif.io/api/presentation/3/context.json"
 CONTEXT_3D = "http://iiif.io/api/presentation/4/context.json"
 MEDIA_TYPE = f'application/ld+json;profile="{CONTEXT}"'
@@ -92,6 +94,23 @@ class FaceModel:
     # IIIF Image API 3.0 level-0 services of the face's tiles (worker/tiles, docs/tiles.md):
     # layer ("albedo", "normals", "height") → the service id (its info.json is id/info.json).
     tile_services: Mapping[str, str] = field(default_factory=dict)
+    # The model's own licence and credit, when it sets them (else the manifest's apply).
+    rights: str | None = None
+    attribution: str | None = None
+    annotations: Sequence[SignAnnotation] = ()
+    # The annotations of the model with their regions in its scene (metres), 3-D manifest.
+    scene_annotations: Sequence[SignAnnotation] = ()
+
+
+@dataclass(frozen=True)
+class SignAnnotation:
+    """An annotation of a sign with its region in the face's image grid (canvas pixels)."""
+
+    number: int  # our annotation id
+    reference: str
+    reading: str | None
+    comment: str | None
+    polygon: Sequence[Sequence[float]]  # image-grid pixels (canvas) or scene metres (scene)
 
 
 @dataclass(frozen=True)
@@ -268,7 +287,41 @@ def _canvas(base: str, face_model: FaceModel) -> dict[str, Any]:
         canvas["rendering"] = renderings
     if "thumbnail.png" in urls:
         canvas["thumbnail"] = [_image(urls["thumbnail.png"])]
+    _own_rights(canvas, face_model)
+    if face_model.annotations:
+        # Non-painting annotations (Presentation 3 §3.4 "annotations"): the signs scholars
+        # tied to regions of this face, as tagging / commenting annotations on the canvas.
+        canvas["annotations"] = [
+            {
+                "id": f"{canvas_id}/annotations",
+                "type": "AnnotationPage",
+                "label": lang("Signs linked to the transliteration", "en"),
+                "items": [
+                    iiif_annotation(
+                        annotation_id=f"{canvas_id}/annotations/{a.number}",
+                        canvas_id=canvas_id,
+                        reference=a.reference,
+                        reading=a.reading,
+                        comment=a.comment,
+                        polygon_px=a.polygon,
+                    )
+                    for a in face_model.annotations
+                ],
+            }
+        ]
     return canvas
+
+
+def _own_rights(resource: dict[str, Any], face_model: FaceModel) -> None:
+    """A model with its own licence or credit says so on its canvas or scene (Presentation 3
+    allows ``rights`` and ``requiredStatement`` on any resource)."""
+    if is_rights_uri(face_model.rights):
+        resource["rights"] = face_model.rights
+    if face_model.attribution:
+        resource["requiredStatement"] = {
+            "label": lang("Attribution", "en"),
+            "value": lang(face_model.attribution, "en"),
+        }
 
 
 def _thumbnail(face_models: Sequence[FaceModel]) -> dict[str, Any] | None:
@@ -413,6 +466,26 @@ def _scene(base: str, face_model: FaceModel) -> dict[str, Any]:
         scene["rendering"] = renderings
     if "thumbnail.png" in urls:
         scene["thumbnail"] = [_image(urls["thumbnail.png"])]
+    _own_rights(scene, face_model)
+    if face_model.scene_annotations:
+        scene["annotations"] = [
+            {
+                "id": f"{scene_id}/annotations",
+                "type": "AnnotationPage",
+                "label": lang("Signs linked to the transliteration", "en"),
+                "items": [
+                    scene_annotation(
+                        annotation_id=f"{scene_id}/annotations/{a.number}",
+                        scene_id=scene_id,
+                        reference=a.reference,
+                        reading=a.reading,
+                        comment=a.comment,
+                        polygon_scene_m=a.polygon,
+                    )
+                    for a in face_model.scene_annotations
+                ],
+            }
+        ]
     return scene
 
 

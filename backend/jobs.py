@@ -180,10 +180,14 @@ def create(
 
 
 def _registration_due(session: Session, tablet_id: int) -> bool:
-    """Models of >= 2 faces, no register job queued/running, and a face model it has not seen.
+    """Models of >= 2 faces, no register job queued/running, no reconstruction of the tablet
+    queued/running, and a face model it has not seen.
 
     A registration reads the models when it starts, so it covers the face models created
-    before its latest ``started_at`` (or ``created_at`` if it never started).
+    before its latest ``started_at`` (or ``created_at`` if it never started). Waiting for the
+    tablet's pending reconstructions registers a set of faces uploaded together once, when
+    its last face is in, instead of once per face (each registration of six faces at 26.8 µm
+    costs minutes); the last reconstruction to finish triggers it.
     """
     face_models = (
         select(Model.id).join(Scan, Model.scan_id == Scan.id).where(Model.tablet_id == tablet_id)
@@ -196,10 +200,14 @@ def _registration_due(session: Session, tablet_id: int) -> bool:
     )
     if faces < 2:
         return False
+    pending = [JobState.queued, JobState.running]
     register = select(Job).where(Job.tablet_id == tablet_id, Job.kind == JobKind.register)
-    if session.scalar(
-        select(exists(register.where(Job.state.in_([JobState.queued, JobState.running]))))
-    ):
+    if session.scalar(select(exists(register.where(Job.state.in_(pending))))):
+        return False
+    reconstructing = select(Job).where(
+        Job.tablet_id == tablet_id, Job.kind == JobKind.reconstruct, Job.state.in_(pending)
+    )
+    if session.scalar(select(exists(reconstructing))):
         return False
     last = session.scalar(register.order_by(Job.id.desc()).limit(1))
     if last is None:
@@ -211,8 +219,9 @@ def _registration_due(session: Session, tablet_id: int) -> bool:
 def create_registration_if_due(session: Session, *, tablet_id: int) -> Job | None:
     """A new queued register job for the tablet if one is due (committed), else None.
 
-    Due: models of two or more faces, no register job queued or running, and a face model
-    newer than the start of the last registration. The tablet row is locked (PostgreSQL) so
+    Due: models of two or more faces, no register job queued or running, no reconstruction
+    of the tablet queued or running (a set of faces is registered once, after its last
+    face), and a face model newer than the start of the last registration. The tablet row is locked (PostgreSQL) so
     two faces finishing at once make one job; on SQLite the second writer waits or fails
     with OperationalError (transient).
     """

@@ -20,7 +20,7 @@ from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.staticfiles import StaticFiles
 
-from backend.api import auth, institutions, tablets, tokens, users
+from backend.api import annotations, auth, institutions, tablets, tokens, users
 from backend.api.deps import SessionGate
 from backend.db import make_engine, make_sessionmaker, server_pool_size
 from backend.docs import DOCS_PATH, install_docs
@@ -32,7 +32,14 @@ from backend.settings import Settings, get_settings
 
 log = logging.getLogger("backend")
 
-ROUTERS = (auth.router, users.router, tokens.router, institutions.router, tablets.router)
+ROUTERS = (
+    auth.router,
+    users.router,
+    tokens.router,
+    institutions.router,
+    tablets.router,
+    annotations.router,
+)
 OPTIONAL_ROUTERS = ("uploads", "scans", "jobs", "models", "iiif")
 
 

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any
+from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, field_validator
+from pydantic_core import PydanticCustomError
 
+from backend.atf import MAX_ATF_CHARS, ReferenceError_, parse_reference
 from backend.db import RowId
 from backend.iiif import RIGHTS_PATTERN, cdli_url
 from backend.licences import LICENCE_DESCRIPTION, check_licence, effective
@@ -200,8 +202,22 @@ class TabletFields(LicenceFields):
     thickness_mm: float | None = Field(default=None, gt=0, le=2000)
     primary_publication: str | None = Field(default=None, max_length=5000)
     notes: str | None = Field(default=None, max_length=20000)
+    atf: str | None = Field(
+        default=None,
+        max_length=MAX_ATF_CHARS,
+        description="the transliteration in ATF (@obverse, numbered lines '1. a-na ...')",
+    )
     is_public: StrictBool | None = None  # 0 / "yes" are refused, not read as booleans
     extra: dict[str, Any] | None = None
+
+    @field_validator("atf", mode="before")
+    @classmethod
+    def _atf_lines(cls, value):
+        # One newline style; a blank text is no text (lines are kept: they are the data).
+        if isinstance(value, str):
+            value = value.replace("\r\n", "\n").replace("\r", "\n").strip("\n")
+            return value if value.strip() else None
+        return value
 
     @field_validator(*[f for f in _TEXT_FIELDS if f != "designation"], mode="before")
     @classmethod
@@ -245,6 +261,7 @@ class TabletOut(ORMModel):
     thickness_mm: float | None
     primary_publication: str | None
     notes: str | None
+    atf: str | None = Field(default=None, description="the transliteration (ATF)")
     licence: str | None = Field(description="the record's own licence (null: the institution's)")
     attribution: str | None
     effective_licence: str | None = Field(
@@ -284,3 +301,192 @@ class SearchPage(BaseModel):
     page: int
     page_size: int
     facets: dict[str, list[FacetValue]]
+
+
+# --- transliterations and annotations (issue 20) --------------------------------------------
+
+
+class SignOut(BaseModel):
+    index: int
+    text: str
+    reference: str = Field(description="the ATF-style reference of the sign, e.g. 'o 2 3'")
+
+
+class LineOut(BaseModel):
+    number: str
+    text: str
+    signs: list[SignOut]
+
+
+class SurfaceOut(BaseModel):
+    surface: str = Field(description="o, r, le, re, te or be")
+    name: str
+    lines: list[LineOut]
+
+
+class TransliterationOut(BaseModel):
+    tablet_id: int
+    surfaces: list[SurfaceOut]
+    problems: list[str] = Field(description="lines that were not understood (skipped)")
+
+
+REFERENCE_PATTERN = (
+    r"^ *(o|r|obv|rev|le|re|te|be|l\.e\.|r\.e\.|t\.e\.|b\.e\.) +"
+    r"[1-9][0-9]{0,3}('{1,2}|[a-z])?\.? +[1-9][0-9]{0,3} *$"
+)
+Coordinate = Annotated[float, Field(allow_inf_nan=False, ge=-10_000, le=10_000)]
+PixelCoordinate = Annotated[float, Field(allow_inf_nan=False, ge=-1, le=1_000_000)]
+PointMm = Annotated[list[Coordinate], Field(min_length=3, max_length=3)]
+PointPx = Annotated[list[PixelCoordinate], Field(min_length=2, max_length=2)]
+MAX_POLYGON_POINTS = 500
+
+
+class AnnotationFields(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    reading: str | None = Field(default=None, max_length=200, description="e.g. 'lugal'")
+    comment: str | None = Field(default=None, max_length=10_000)
+    polygon_px: list[PointPx] | None = Field(
+        default=None,
+        min_length=3,
+        max_length=MAX_POLYGON_POINTS,
+        description="the same points in the image grid [[col, row], ...] of image_face's "
+        "image; omitted on a face model: computed from polygon_mm and the pixel size",
+    )
+    image_face: str | None = Field(
+        default=None,
+        pattern=r"^[a-z]{1,32}$",
+        description="the face whose image polygon_px is on (default: the model's face)",
+    )
+
+    @field_validator("reading", "comment", mode="before")
+    @classmethod
+    def _blank_is_none(cls, value):
+        return (value.strip() or None) if isinstance(value, str) else value
+
+
+def _reference(value):
+    if not isinstance(value, str):
+        return value
+    try:
+        return parse_reference(value).text
+    except ReferenceError_ as exc:
+        # The message names the bad part (surface, line or sign) without pydantic's prefix.
+        raise PydanticCustomError("reference", str(exc)) from exc
+
+
+class AnnotationIn(AnnotationFields):
+    """A new annotation of a model version: a region tied to a sign of the text."""
+
+    reference: str = Field(
+        max_length=40,
+        json_schema_extra={"pattern": REFERENCE_PATTERN},
+        description="ATF-style: surface line sign, e.g. 'o 2 3' = obverse, line 2, sign 3 "
+        "(surfaces o, r, le, re, te, be)",
+    )
+    polygon_mm: list[PointMm] = Field(
+        min_length=3,
+        max_length=MAX_POLYGON_POINTS,
+        description="the region's outline [[x, y, z], ...] in the model's scan frame, mm",
+    )
+
+    @field_validator("reference", mode="before")
+    @classmethod
+    def _check_reference(cls, value):
+        return _reference(value)
+
+
+class AnnotationUpdate(AnnotationFields):
+    """Fields left out stay; ``null`` clears reading, comment or the image polygon."""
+
+    reference: str = Field(
+        default=None,
+        max_length=40,
+        json_schema_extra={"pattern": REFERENCE_PATTERN},
+        description="omit to keep; null is refused",
+    )
+    polygon_mm: list[PointMm] = Field(
+        default=None, min_length=3, max_length=MAX_POLYGON_POINTS, description="omit to keep"
+    )
+
+    @field_validator("reference", mode="before")
+    @classmethod
+    def _check_reference(cls, value):
+        return _reference(value)
+
+
+class TextualBodyOut(BaseModel):
+    type: str = "TextualBody"
+    purpose: str = Field(description="identifying (the reference), describing, commenting")
+    value: str
+    format: str = "text/plain"
+
+
+class SelectorOut(BaseModel):
+    type: str = Field(description="WktSelector (mm), SvgSelector or FragmentSelector (pixels)")
+    value: str
+    conformsTo: str | None = None
+
+
+class SourceOut(BaseModel):
+    id: str
+    type: str
+    format: str | None = None
+
+
+class TargetOut(BaseModel):
+    type: str = "SpecificResource"
+    source: SourceOut
+    selector: list[SelectorOut]
+
+
+class CreatorOut(BaseModel):
+    id: str
+    type: str = "Person"
+    name: str
+
+
+class ReferenceOut(BaseModel):
+    text: str
+    surface: str
+    line: str
+    sign: int
+
+
+class WebAnnotationOut(BaseModel):
+    """A W3C Web Annotation (JSON-LD) plus plain facts for our clients (model version)."""
+
+    model_config = ConfigDict(populate_by_name=True)
+
+    context: str = Field(alias="@context")
+    id: str
+    type: str = "Annotation"
+    motivation: str
+    created: datetime
+    modified: datetime
+    creator: CreatorOut | None = None
+    body: list[TextualBodyOut]
+    target: list[TargetOut]
+    annotationId: int
+    tabletId: int
+    modelId: int
+    modelVersion: int
+    face: str = Field(description="the model's face, or 'tablet' for a whole-tablet model")
+    reference: ReferenceOut
+    reading: str | None = None
+    comment: str | None = None
+    polygonMm: list[list[float]]
+    polygonPx: list[list[float]] | None = None
+    imageFace: str | None = None
+    creatorId: int | None = None
+
+
+class AnnotationPageOut(BaseModel):
+    model_config = ConfigDict(populate_by_name=True)
+
+    context: str = Field(alias="@context")
+    id: str
+    type: str = "AnnotationPage"
+    startIndex: int = 0
+    total: int
+    items: list[WebAnnotationOut]

@@ -166,6 +166,8 @@ class Tablet(Base):
     thickness_mm: Mapped[float | None] = mapped_column(Float)
     primary_publication: Mapped[str | None] = mapped_column(Text)
     notes: Mapped[str | None] = mapped_column(Text)
+    # The transliteration in ATF (backend.atf parses it; annotations refer to its signs).
+    atf: Mapped[str | None] = mapped_column(Text)
     # A Creative Commons / RightsStatements.org URI and a credit line; None: the institution's.
     licence: Mapped[str | None] = mapped_column(String(300))
     attribution: Mapped[str | None] = mapped_column(String(500))
@@ -288,4 +290,35 @@ class Model(Base):
     attribution: Mapped[str | None] = mapped_column(String(500))
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
+    # Loaded on use: the licence that applies falls back to the tablet's (backend.licences).
+    tablet: Mapped[Tablet] = relationship(lazy="select")
+
     __table_args__ = (UniqueConstraint("scan_id", "version", name="uq_models_scan_version"),)
+
+
+class Annotation(Base):
+    """A region of a model version tied to a sign of the text (a W3C Web Annotation).
+
+    The region is a polygon in the model's scan frame (mm) and, when known, the same polygon
+    in the image grid (pixels) of ``image_face``'s image; backend.annotations builds the
+    JSON-LD. It belongs to one model version: a new reconstruction starts without them.
+    """
+
+    __tablename__ = "annotations"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    model_id: Mapped[int] = mapped_column(ForeignKey("models.id", ondelete="CASCADE"), index=True)
+    # Denormalised from the model: the tablet's listing and its access check need no join.
+    tablet_id: Mapped[int] = mapped_column(ForeignKey("tablets.id", ondelete="CASCADE"), index=True)
+    creator_id: Mapped[int | None] = mapped_column(ForeignKey("users.id", ondelete="SET NULL"))
+    reference: Mapped[str] = mapped_column(String(40))  # normalised: "o 2 3"
+    reading: Mapped[str | None] = mapped_column(String(200))
+    comment: Mapped[str | None] = mapped_column(Text)
+    polygon_mm: Mapped[list[Any]] = mapped_column(JSON, default=list)  # [[x, y, z], ...]
+    polygon_px: Mapped[list[Any] | None] = mapped_column(JSON)  # [[col, row], ...]
+    image_face: Mapped[str | None] = mapped_column(String(32))
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
+
+    creator: Mapped[User | None] = relationship(lazy="joined")
+    model: Mapped[Model] = relationship(lazy="joined")

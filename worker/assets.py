@@ -9,7 +9,9 @@ textures, docs/architecture.md):
   128 = 0 (``worker.recon.shading_maps``);
 - ``accessibility.png``: horizon-based ambient occlusion, 0 = enclosed … 255 = open;
 - ``normals.png`` if the pipeline did not write it;
-- ``shading.json``: the scales and encodings of the maps above.
+- ``shading.json``: the scales and encodings of the maps above;
+- ``trust.png``, ``trust.json`` and ``uncertainty_um.npy``: where the heights rest on what,
+  and how far to trust them (``worker.trust``), from ``quality/*.npy``.
 
 Each file is written to a temporary name, fsynced and renamed: a crash leaves whole files.
 Existing assets are rewritten identically (the maps are deterministic), so running this
@@ -34,6 +36,7 @@ from worker.recon.shading_maps import (
     normals_rgb8,
     robust_scale,
 )
+from worker.trust_assets import TRUST_ASSETS, trust_assets
 
 THUMBNAIL_MAX_PX = 512
 CURVATURE_SCALES_UM = {"curvature.png": 200.0, "curvature_coarse.png": 1000.0}
@@ -46,6 +49,7 @@ ASSET_NAMES = (
     "accessibility.png",
     "normals.png",
     "shading.json",
+    *TRUST_ASSETS,
 )
 
 
@@ -137,4 +141,6 @@ def derive_assets(model_dir: str | os.PathLike) -> list[str]:
     if not (model_dir / "normals.png").is_file():
         put("normals.png", _png_bytes(normals_rgb8(normals), "normals.png"))
     put("shading.json", json.dumps(meta, indent=1).encode("utf-8"))
+    for name, data in trust_assets(model_dir, height_um, report).items():
+        put(name, data)
     return written

@@ -140,6 +140,7 @@ def _model(
         )
     timings["mask"] = time.perf_counter() - t0
 
+    walls_flag = None
     with ThreadPoolExecutor(max_workers=1) as side:
         # What depends on the mask alone is prepared beside the fusion, whose solves leave a
         # core idle (it waits for the colour stage first). The fusion keeps the mask unless
@@ -158,9 +159,12 @@ def _model(
                 normals_job = pool.submit(normals_of)
                 timings["fusion"] = time.perf_counter() - t0
                 t0 = time.perf_counter()
+                before_walls = height
                 height, refinements["walls"] = refine_walls_checked(
                     meas, height, mask, blur_sigma_px=blur_px
                 )
+                # Where the refinement acted, for the viewer's trust map (worker/trust.py).
+                walls_flag = np.isfinite(height) & (height != before_walls)
                 normals = normals_job.result()
             timings["walls"] = time.perf_counter() - t0
         else:
@@ -182,6 +186,8 @@ def _model(
     quality = _quality_maps(meas, height, mask, on_mask.quality)
     if guard_flag is not None:
         quality["guard"] = np.where(mask, guard_flag, 0).astype(np.uint8)
+    if walls_flag is not None:
+        quality["walls"] = (mask & walls_flag).astype(np.uint8)
     report = _report(meas, mask, quality, on_mask.figures, fusion=fusion, surface=used_surface)
     report["refinements"] = refinements
     report["quality"]["camera_blur_sigma_px"] = blur_px

@@ -3,15 +3,16 @@
 - ``worker.tasks.reconstruct_scan(job_id)``: fetch the scan's bundle from storage,
   ``worker.pipeline.reconstruct_bundle``, derive the viewer's assets (``worker.assets``), build
   the tiles for streaming (``worker.tiles``), store the model directory and its row (``backend.jobs.mark_succeeded``: files + row together).
-- ``worker.tasks.derive_assets(job_id)``: (re)derive the assets of the latest model of the
-  job's scan, e.g. for models made before an asset existed.
+- ``worker.tasks.derive_assets(job_id)``: (re)derive the assets and the tiles of the latest
+  model of the job's scan, e.g. for models made before an asset existed.
 - ``worker.tasks.register_tablet(job_id)``: register a tablet's faces with
   ``worker.register`` when that module exists (another engineer's).
 
 Registration starts by itself: after a reconstruction succeeds (and after a registration
 ends) :func:`schedule_registration` creates and sends ONE register job for the tablet when
-it has models of two or more faces, none is queued or running, and a face model is newer
-than the start of the last registration. Redelivered messages find that job and add none.
+it has models of two or more faces, none is queued or running, no reconstruction of the
+tablet is queued or running (a set of faces uploaded together is registered once, when its
+last face is in), and a face model is newer than the start of the last registration. Redelivered messages find that job and add none.
 
 Thin: every change of a job row is a call into ``backend.jobs`` (claim, heartbeat, progress,
 retry wait, derived assets, success, failure) and every send goes through
@@ -54,6 +55,7 @@ from worker.assets import derive_assets as write_derived_assets
 from worker.celery_app import app
 from worker.photos import write_photo_assets
 from worker.tiles import TileError, build_tiles
+from worker.trust_assets import QUALITY_INPUTS
 
 log = logging.getLogger("worker.tasks")
 
@@ -306,22 +308,38 @@ def _derive(beat: _Beat, job: Job) -> str:
     )
     try:
         beat.progress("fetch", 0.1, force=True)
-        for name in ("height.npy", "normals.npy", "report.json", "albedo.png", "normals.png"):
+        quality = [f"quality/{n}.npy" for n in QUALITY_INPUTS]  # the trust map's inputs
+        (work / "quality").mkdir(exist_ok=True)
+        for name in (
+            "height.npy",
+            "normals.npy",
+            "report.json",
+            "albedo.png",
+            "normals.png",
+            "model.glb",
+            *quality,
+        ):
             key = f"{prefix}/{name}"
             if storage.exists(key):
                 storage.get_file(key, work / name)
-        beat.progress("assets", 0.4, force=True)
+        beat.progress("assets", 0.3, force=True)
         names = write_derived_assets(work)
-        beat.progress("store", 0.9, force=True)
+        # The tiles too (models made before worker.tiles existed get theirs here).
+        beat.progress("tiles", 0.5, force=True)
+        _build_tiles(work, lambda stage, f: beat.progress("tiles", 0.5 + 0.3 * f))
+        beat.progress("store", 0.85, force=True)
         stats = {name: storage.put_file(f"{prefix}/{name}", work / name) for name in names}
+        if (work / "tiles" / "index.json").is_file():
+            for s in storage.put_tree(f"{prefix}/tiles", work / "tiles"):
+                stats[s.key[len(prefix) + 1 :]] = s
         with capp.session_factory()() as session:
             jobs.store_derived_assets(
                 session,
                 job_id=job.id,
                 model_id=model_id,
-                assets={
-                    n: {"size_bytes": s.size_bytes, "sha256": s.etag} for n, s in stats.items()
-                },
+                assets=jobs.recorded_assets(
+                    {n: {"size_bytes": s.size_bytes, "sha256": s.etag} for n, s in stats.items()}
+                ),
             )
         return "succeeded"
     finally:
@@ -387,7 +405,10 @@ _TASK_OPTIONS = {"bind": True, "acks_late": True, "max_retries": MAX_RETRIES}
 @app.task(name=jobs.TASK_BY_KIND[JobKind.reconstruct], **_TASK_OPTIONS)
 def reconstruct_scan(self, job_id: int) -> str:
     result = _run_job(self, int(job_id), _reconstruct)
-    if result == "succeeded":  # also on redelivery: a crash may have come before this step
+    # Also on redelivery (a crash may have come before this step), and after a failure: the
+    # registration waits for the tablet's pending reconstructions, so the last face of a set
+    # starts it whether or not that face itself succeeded.
+    if result in ("succeeded", "failed"):
         _follow_up(self, int(job_id))
     return result
 

@@ -9,14 +9,22 @@ each face is shown.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from backend import licences
+from backend.annotations import (
+    GLB_HEADER_BYTES,
+    glb_json_length,
+    scan_to_scene_matrix,
+    transform_points,
+)
 from backend.api.deps import ReadableTablet, SessionDep, SettingsDep
-from backend.api.models import StorageErrorRoute
+from backend.api.models import StorageDep, StorageErrorRoute
 from backend.errors import not_found
 from backend.iiif import (
     CONTEXT,
@@ -26,12 +34,14 @@ from backend.iiif import (
     WHOLE,
     FaceModel,
     Provenance,
+    SignAnnotation,
     build_3d_manifest,
     build_manifest,
     find_by_id,
     has_canvas,
 )
-from backend.tables import Model, Scan, Tablet
+from backend.storage import ObjectNotFound, Storage
+from backend.tables import Annotation, Model, Scan, Tablet
 
 router = APIRouter(tags=["iiif"], route_class=StorageErrorRoute)
 
@@ -105,6 +115,7 @@ def _inputs(session: Session, settings, tablet: Tablet):
     urls = tablet_urls(settings, tablet)
     models = newest_models(session, tablet.id)
     face_models = []
+    signs = _sign_annotations(session, [m.id for f, m in models.items() if f != WHOLE])
     for face, model in models.items():
         width, height, pixel = _grid(model.report or {})
         face_models.append(
@@ -127,11 +138,35 @@ def _inputs(session: Session, settings, tablet: Tablet):
                     if "tiles/index.json" in (model.assets or {})
                     else {}
                 ),
+                rights=model.licence,
+                attribution=model.attribution,
+                annotations=tuple(signs.get((model.id, face), ())),
             )
         )
     licence = licences.effective(tablet)
     fields = {name: getattr(tablet, name) for name in FIELDS}
     return urls, face_models, fields, licence
+
+
+def _sign_annotations(
+    session: Session, model_ids: list[int]
+) -> dict[tuple[int, str], list[SignAnnotation]]:
+    """(model id, face) → the annotations on that face's image grid, oldest first."""
+    found: dict[tuple[int, str], list[SignAnnotation]] = {}
+    if not model_ids:
+        return found
+    rows = session.scalars(
+        select(Annotation)
+        .where(Annotation.model_id.in_(model_ids), Annotation.polygon_px.is_not(None))
+        .order_by(Annotation.id)
+    )
+    for a in rows:
+        if not a.image_face or not a.polygon_px:
+            continue
+        found.setdefault((a.model_id, a.image_face), []).append(
+            SignAnnotation(a.id, a.reference, a.reading, a.comment, a.polygon_px)
+        )
+    return found
 
 
 def _manifest(session: Session, settings, tablet: Tablet) -> dict:
@@ -151,8 +186,57 @@ def _manifest(session: Session, settings, tablet: Tablet) -> dict:
     )
 
 
-def _manifest_3d(session: Session, settings, tablet: Tablet) -> dict:
+def scene_matrix(storage: Storage, model: Model) -> list[list[float]] | None:
+    """The scan frame → scene matrix of the model's model.glb (its root node), or None when
+    the file is absent or written without one (older GLBs)."""
+    info = (model.assets or {}).get("model.glb")
+    size = int(info.get("size_bytes", 0)) if isinstance(info, dict) else 0
+    key = f"{model.storage_prefix}/model.glb"
+    try:
+        header = b"".join(storage.open_range(key, 0, min(GLB_HEADER_BYTES, size)))
+        length = glb_json_length(header)
+        if length is None or GLB_HEADER_BYTES + length > size:
+            return None
+        document = b"".join(storage.open_range(key, GLB_HEADER_BYTES, GLB_HEADER_BYTES + length))
+    except (ObjectNotFound, ValueError):
+        return None
+    return scan_to_scene_matrix(document)
+
+
+def _scene_annotations(
+    session: Session, storage: Storage, models: dict[str, Model]
+) -> dict[int, list[SignAnnotation]]:
+    """Model id → its annotations with their regions in its scene (metres), oldest first."""
+    by_model: dict[int, list[Annotation]] = {}
+    ids = [m.id for m in models.values()]
+    if ids:
+        rows = session.scalars(
+            select(Annotation).where(Annotation.model_id.in_(ids)).order_by(Annotation.id)
+        )
+        for a in rows:
+            by_model.setdefault(a.model_id, []).append(a)
+    found: dict[int, list[SignAnnotation]] = {}
+    for model in models.values():
+        if model.id not in by_model:
+            continue
+        matrix = scene_matrix(storage, model)
+        if matrix is None:
+            continue
+        found[model.id] = [
+            SignAnnotation(
+                a.id, a.reference, a.reading, a.comment, transform_points(matrix, a.polygon_mm)
+            )
+            for a in by_model[model.id]
+        ]
+    return found
+
+
+def _manifest_3d(session: Session, settings, tablet: Tablet, storage: Storage) -> dict:
     urls, face_models, fields, licence = _inputs(session, settings, tablet)
+    signs = _scene_annotations(session, storage, newest_models(session, tablet.id))
+    face_models = [
+        replace(f, scene_annotations=tuple(signs.get(f.model_id, ()))) for f in face_models
+    ]
     if not any("model.glb" in f.asset_urls for f in face_models):
         raise not_found(f"a 3-D model of tablet {tablet.id}", where="tablet_id")
     return build_3d_manifest(
@@ -189,15 +273,21 @@ def read_manifest_part(
 
 
 @router.get("/tablets/{tablet_id}/iiif/3d/manifest.json", response_class=JSONResponse)
-def read_manifest_3d(tablet: ReadableTablet, session: SessionDep, settings: SettingsDep):
+def read_manifest_3d(
+    tablet: ReadableTablet, session: SessionDep, settings: SettingsDep, storage: StorageDep
+):
     """The 3-D models as a IIIF Presentation 4 draft Manifest of Scenes (404 until one)."""
-    return JSONResponse(_manifest_3d(session, settings, tablet), media_type=MEDIA_TYPE_3D)
+    return JSONResponse(_manifest_3d(session, settings, tablet, storage), media_type=MEDIA_TYPE_3D)
 
 
 @router.get("/tablets/{tablet_id}/iiif/3d/scene/{part:path}", response_class=JSONResponse)
 def read_manifest_3d_part(
-    part: str, tablet: ReadableTablet, session: SessionDep, settings: SettingsDep
+    part: str,
+    tablet: ReadableTablet,
+    session: SessionDep,
+    settings: SettingsDep,
+    storage: StorageDep,
 ):
     """A Scene, AnnotationPage or Annotation of the 3-D manifest, by its id."""
-    manifest = _manifest_3d(session, settings, tablet)
+    manifest = _manifest_3d(session, settings, tablet, storage)
     return _part(manifest, "scene", part, CONTEXT_3D, MEDIA_TYPE_3D)

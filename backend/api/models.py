@@ -23,12 +23,13 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import JSONResponse, RedirectResponse, StreamingResponse
 from fastapi.routing import APIRoute
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy.orm import Session
 
-from backend import crud, jobs
+from backend import crud, jobs, licences
 from backend.api.deps import OptionalUser, RowId, SessionDep, SettingsDep
 from backend.errors import error_body, forbidden, not_found, unauthorized
+from backend.schemas import LicenceFields
 from backend.storage import Storage, StorageError, storage_from_settings
 from backend.tables import Model, Scan, Tablet, User
 
@@ -100,12 +101,22 @@ class ModelOut(BaseModel):
     report: dict[str, Any]
     assets: dict[str, str]
     simulated: bool  # made from simulated scans (its report says so)
+    licence: str | None = Field(
+        default=None, description="the model's own licence (null: the tablet's)"
+    )
+    attribution: str | None = None
+    effective_licence: str | None = Field(
+        default=None,
+        description="the licence that applies: the model's, else the tablet's or institution's",
+    )
+    effective_attribution: str | None = None
 
     @classmethod
     def of(cls, model: Model, *, api_prefix: str) -> ModelOut:
         from worker.bundle import is_simulated  # as backend.uploads: loaded on first use
 
         base = f"{api_prefix}/models/{model.id}/assets"
+        applies = licences.effective(model.tablet, model)
         report = model.report or {}
         scan = report.get("scan") if isinstance(report.get("scan"), dict) else {}
         return cls(
@@ -118,7 +129,17 @@ class ModelOut(BaseModel):
             report=model.report or {},
             assets={name: f"{base}/{name}" for name in sorted(model.assets or {})},
             simulated=report.get("simulated") is True or is_simulated(scan.get("tablet")),
+            licence=model.licence,
+            attribution=model.attribution,
+            effective_licence=applies.licence,
+            effective_attribution=applies.attribution,
         )
+
+
+class ModelUpdate(LicenceFields):
+    """The model's own licence and credit line (``null``: the tablet's apply)."""
+
+    model_config = ConfigDict(extra="forbid")
 
 
 router = APIRouter(prefix="/models", tags=["models"], route_class=StorageErrorRoute)
@@ -162,6 +183,30 @@ def list_tablet_models(
 
 @router.get("/{model_id}", response_model=ModelOut)
 def read_model(model: ReadableModel, settings: SettingsDep) -> ModelOut:
+    return ModelOut.of(model, api_prefix=settings.api_prefix)
+
+
+@router.patch("/{model_id}", response_model=ModelOut)
+def update_model(
+    model_id: RowId,
+    body: ModelUpdate,
+    session: SessionDep,
+    settings: SettingsDep,
+    user: OptionalUser,
+) -> ModelOut:
+    """Set the model's licence URI and attribution: staff of the holding institution, admins.
+
+    A model made elsewhere may carry its maker's licence and credit; manifests, exports and
+    citations then show them for this model (backend.licences.effective)."""
+    model = session.get(Model, model_id)
+    if model is None:
+        raise not_found(f"model {model_id}", where="model_id")
+    check_tablet_access(
+        session, user, model.tablet_id, what=f"model {model_id}", where="model_id", edit=True
+    )
+    for name, value in body.model_dump(exclude_unset=True).items():
+        setattr(model, name, value)
+    session.flush()
     return ModelOut.of(model, api_prefix=settings.api_prefix)
 
 

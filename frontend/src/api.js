@@ -118,3 +118,15 @@ export function assetHref(url) {
   if (/^(https?:)?\/\//.test(url) || url.startsWith('/')) return url;
   return `${API_PREFIX}/${url}`;
 }
+
+// --- transliterations and annotations (W3C Web Annotations, docs/api.md "Annotations") ----------
+export const getTransliteration = (tabletId) =>
+  request('GET', api(`/tablets/${encodeURIComponent(tabletId)}/transliteration`));
+/** The tablet's annotations of every model version (an AnnotationPage), `q`: search words. */
+export const tabletAnnotations = (tabletId, q) =>
+  request('GET', api(`/tablets/${encodeURIComponent(tabletId)}/annotations`), { query: { q } });
+export const createAnnotation = (modelId, body) =>
+  request('POST', api(`/models/${encodeURIComponent(modelId)}/annotations`), { json: body });
+export const updateAnnotation = (id, changes) =>
+  request('PATCH', api(`/annotations/${encodeURIComponent(id)}`), { json: changes });
+export const deleteAnnotation = (id) => request('DELETE', api(`/annotations/${encodeURIComponent(id)}`));

@@ -5,8 +5,10 @@
 import * as api from './api.js';
 import { el, formatDate, showError } from './dom.js';
 import { bindViewerUi } from './viewer/ui.js';
+import { bindScholarTools } from './viewer/scholar.js';
 import { bindCite } from './viewer/citeUi.js';
 import { bindPhotoPanel } from './viewer/photos.js';
+import { bindAnnotations } from './annotationsPanel.js';
 import { decodeViewState, encodeViewState } from './viewer/permalink.js';
 import { tileOptionsFromSearch } from './viewer/tilesIndex.js';
 import { createViewer } from './viewer/viewer.js';
@@ -43,14 +45,24 @@ let restoring = decodeViewState(window.location.hash);
 const tileSettings = tileOptionsFromSearch(location.search); // ?tile_budget_mb=…&tile_error_px=…
 let ui = null; // bound below; the viewer reports changes while it is being created
 let photos = null;
+let scholar = null;
 const viewer = createViewer($('viewer'), {
   onChange: () => {
     ui?.changed();
     photos?.changed();
+    scholar?.changed();
     if (currentModel) scheduleHash();
   },
 });
+scholar = bindScholarTools(viewer, {
+  assetUrl: (name) => (currentModel?.assets?.[name] ? api.assetHref(currentModel.assets[name]) : null),
+  getPixelSizeUm: () => Number(currentModel?.report?.pixel_size_um) || null,
+  baseName: () => (tablet?.designation ?? `tablet-${tabletId}`).replace(/[^\w.-]+/g, '_'),
+  describe: describeShown,
+});
 ui = bindViewerUi(viewer, {
+  uncertainty: scholar.uncertainty,
+  onAction: scholar.onAction,
   getHeightUrl: () => (currentModel?.assets?.['height.npy'] ? api.assetHref(currentModel.assets['height.npy']) : null),
   getPixelSizeUm: () => Number(currentModel?.report?.pixel_size_um) || null,
   baseName: () => (tablet?.designation ?? `tablet-${tabletId}`).replace(/[^\w.-]+/g, '_'),
@@ -83,6 +95,8 @@ bindCite({
   },
 });
 
+const annotations = bindAnnotations(viewer, { container: $('annotations'), canvas: $('viewer'), stopTools: () => ui.stopTools() });
+
 /** The tablet and model on screen, for citations and exported files. */
 function describeShown() {
   return {
@@ -90,12 +104,12 @@ function describeShown() {
     pNumber: tablet?.p_number ?? null,
     modelId: currentModel?.id,
     modelVersion: currentModel?.version,
-    licence: currentModel?.licence ?? tablet?.effective_licence ?? null,
-    attribution: currentModel?.attribution ?? tablet?.effective_attribution ?? null,
+    licence: currentModel?.effective_licence ?? tablet?.effective_licence ?? null,
+    attribution: currentModel?.effective_attribution ?? tablet?.effective_attribution ?? null,
   };
 }
 // For the console and for tests: the page's viewer.
-window.hammurabi = { viewer, ui };
+window.hammurabi = { viewer, ui, annotations, scholar };
 
 function scheduleHash() {
   clearTimeout(hashTimer);
@@ -228,6 +242,7 @@ async function showModel(modelId) {
   loadController = new AbortController();
   const { signal } = loadController;
   ui.stopTools();
+  scholar.stop();
   $('progress').hidden = false;
   $('progress-fill').style.width = '0%';
   $('progress-label').textContent = 'Loading the model…';
@@ -269,6 +284,7 @@ async function showModel(modelId) {
       ui.setLinkNotice(`Parts of the link could not be used: ${tileIgnored.join(', ')}.`);
     }
     renderFaces(model);
+    annotations.setModel(model);
     scheduleHash();
     $('viewer').dataset.loaded = String(model.id);
   } catch (err) {
@@ -329,6 +345,7 @@ async function main() {
   try {
     tablet = await api.getTablet(tabletId);
     renderCatalogue(tablet);
+    annotations.setTablet(tablet).catch(reportError);
     await refreshScans({ pickModel: true });
   } catch (err) {
     reportError(err);

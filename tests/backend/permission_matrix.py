@@ -76,6 +76,32 @@ def _fresh_token_of_staff_own(world, _role):
         return {"token_id": token.id}
 
 
+_ATF = "@obverse\n1. a-na {d}utu\n2. qi2-bi2-ma\n@reverse\n1. um-ma"
+_ANNOTATION = {"reference": "o 1 2", "polygon_mm": [[0, 0, 0], [1, 0, 0], [1, 1, 0]]}
+
+
+def _private_a_ref(world, _role):
+    return {"tablet_id": world.private_a}
+
+
+def _annotation_by(world, author: str, tablet_id: int) -> dict:
+    """A fresh annotation of ``author`` (a role) on a new model of ``tablet_id``."""
+    from backend.tables import Annotation
+
+    model_id = world.new_model(tablet_id)
+    with world.session() as session:
+        annotation = Annotation(
+            model_id=model_id,
+            tablet_id=tablet_id,
+            creator_id=world.users[author],
+            reference="o 1 2",
+            polygon_mm=_ANNOTATION["polygon_mm"],
+        )
+        session.add(annotation)
+        session.flush()
+        return {"annotation_id": annotation.id}
+
+
 MATRIX: dict[str, list[Case]] = {
     # --- health, auth, users, tokens, institutions (library core) ---------------------------
     "GET /api/v1/health": [Case("anyone", expect(200, 200, 200, 200, 200))],
@@ -217,6 +243,97 @@ MATRIX: dict[str, list[Case]] = {
         ),
     ],
     # --- uploads, scans, jobs, models, iiif (uploads engineer: add your rows here) ------------
+    # --- annotations and transliterations (issue 20) ----------------------------------------
+    "GET /api/v1/tablets/{tablet_id}/transliteration": [
+        Case(
+            "private record with ATF",
+            expect(404, 404, 200, 404, 200),
+            params=lambda w, role: {"tablet_id": w.new_tablet(atf=_ATF)},
+        ),
+        Case(
+            "public record with ATF",
+            expect(200, 200, 200, 200, 200),
+            params=lambda w, role: {"tablet_id": w.new_tablet(is_public=True, atf=_ATF)},
+        ),
+    ],
+    "GET /api/v1/tablets/{tablet_id}/annotations": [
+        Case("private A", expect(404, 404, 200, 404, 200), params=_private_a_ref),
+        Case(
+            "public A",
+            expect(200, 200, 200, 200, 200),
+            params=lambda w, role: {"tablet_id": w.public_a},
+        ),
+    ],
+    "GET /api/v1/models/{model_id}/annotations": [
+        Case(
+            "model of private A",
+            expect(404, 404, 200, 404, 200),
+            params=lambda w, role: {"model_id": w.new_model(w.private_a)},
+        ),
+        Case(
+            "model of public A",
+            expect(200, 200, 200, 200, 200),
+            params=lambda w, role: {"model_id": w.new_model(w.public_a)},
+        ),
+    ],
+    "POST /api/v1/models/{model_id}/annotations": [
+        Case(
+            "on a model of public A: any signed-in user (staff and registered scholars)",
+            expect(401, 201, 201, 201, 201),
+            params=lambda w, role: {"model_id": w.new_model(w.public_a)},
+            json=lambda w, role: _ANNOTATION,
+        ),
+        Case(
+            "on a model of private A: those who may read it",
+            expect(404, 404, 201, 404, 201),
+            params=lambda w, role: {"model_id": w.new_model(w.private_a)},
+            json=lambda w, role: _ANNOTATION,
+        ),
+    ],
+    "GET /api/v1/annotations/{annotation_id}": [
+        Case(
+            "by the reader, on public A",
+            expect(200, 200, 200, 200, 200),
+            params=lambda w, role: _annotation_by(w, "reader", w.public_a),
+        ),
+        Case(
+            "by staff of A, on private A",
+            expect(404, 404, 200, 404, 200),
+            params=lambda w, role: _annotation_by(w, "staff_own", w.private_a),
+        ),
+    ],
+    "PATCH /api/v1/annotations/{annotation_id}": [
+        Case(
+            "by the reader, on public A: its author, A's staff, admins",
+            expect(401, 200, 200, 403, 200),
+            params=lambda w, role: _annotation_by(w, "reader", w.public_a),
+            json=lambda w, role: {"comment": "seen"},
+        ),
+        Case(
+            "by staff of B, on public A: its author, A's staff, admins",
+            expect(401, 403, 200, 200, 200),
+            params=lambda w, role: _annotation_by(w, "staff_other", w.public_a),
+            json=lambda w, role: {"reading": "lugal"},
+        ),
+        Case(
+            "by staff of A, on private A",
+            expect(404, 404, 200, 404, 200),
+            params=lambda w, role: _annotation_by(w, "staff_own", w.private_a),
+            json=lambda w, role: {"comment": "seen"},
+        ),
+    ],
+    "DELETE /api/v1/annotations/{annotation_id}": [
+        Case(
+            "by the reader, on public A: its author, A's staff, admins",
+            expect(401, 204, 204, 403, 204),
+            params=lambda w, role: _annotation_by(w, "reader", w.public_a),
+        ),
+        Case(
+            "by staff of A, on private A",
+            expect(404, 404, 204, 404, 204),
+            params=lambda w, role: _annotation_by(w, "staff_own", w.private_a),
+        ),
+    ],
 }
 
 
@@ -411,6 +528,20 @@ _OPTIONAL_ROWS = {
             expect(404, 404, 200, 404, 200),
             params=lambda w, role: {"model_id": w.new_model(w.private_a)},
         )
+    ],
+    "PATCH /api/v1/models/{model_id}": [
+        Case(
+            "licence of a model of public A: A's staff and admins",
+            expect(401, 403, 200, 403, 200),
+            params=lambda w, role: {"model_id": w.new_model(w.public_a)},
+            json=lambda w, role: {"licence": "https://creativecommons.org/licenses/by/4.0/"},
+        ),
+        Case(
+            "licence of a model of private A",
+            expect(404, 404, 200, 404, 200),
+            params=lambda w, role: {"model_id": w.new_model(w.private_a)},
+            json=lambda w, role: {"attribution": "Scanned by Museum A"},
+        ),
     ],
     "GET /api/v1/models/{model_id}/assets/{name}": [
         Case(

@@ -200,3 +200,31 @@ def test_manifest_gives_each_layer_its_image_service(client, world, store, tmp_p
     height = client.get(urlsplit(bodies[2]["id"]).path)
     assert height.status_code == 200 and height.headers["content-type"] == "image/png"
     assert (bodies[2]["width"], bodies[2]["height"]) == (350, 280)
+
+
+def test_a_whole_tablets_face_tiles_are_served(client, world, store, tmp_path, tiled_dir):
+    """A whole-tablet model: tiles/faces/<label>/... found in the one tiles/files.json."""
+    import numpy as np
+
+    from worker.tiles.tablet import build_tablet_tiles
+
+    directory = tmp_path / "tablet"
+    directory.mkdir()
+    build_tablet_tiles(directory, {"faces/obverse": (tiled_dir, np.eye(4))})
+    (directory / "model.glb").write_bytes((tiled_dir / "model.glb").read_bytes())
+    with world.session() as session:
+        job_id = jobs.create(session, tablet_id=world.public_a, kind="register").id
+        jobs.mark_running(session, job_id=job_id)
+        model_id = jobs.mark_succeeded(
+            session, job_id=job_id, model_dir=directory, storage=store
+        ).id
+    base = f"{API}/models/{model_id}/assets/tiles"
+    root = client.get(f"{base}/3d/tileset.json").json()
+    (child,) = root["root"]["children"]
+    # The external tileset's URI, resolved against the root tileset's URL as a browser does.
+    face_set = client.get(f"{base}/{child['content']['uri'].removeprefix('../')}")
+    assert face_set.status_code == 200
+    glb = client.get(f"{base}/faces/obverse/3d/{face_set.json()['root']['content']['uri']}")
+    assert glb.status_code == 200 and glb.content[:4] == b"glTF"
+    info = client.get(f"{base}/faces/obverse/iiif/normals/info.json").json()
+    assert info["id"].endswith(f"/models/{model_id}/assets/tiles/faces/obverse/iiif/normals")

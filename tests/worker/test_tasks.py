@@ -76,7 +76,9 @@ def test_reconstruction_job_stores_one_model_with_assets_and_redelivery_is_a_no_
     assert tasks.reconstruct_scan.apply(args=[job_id]).get() == "succeeded"
     job = _row(job_id)
     assert job.state == JobState.succeeded and job.progress == 1.0 and job.attempts == 1
-    assert {"fetch", "reconstruct", "assets", "photos", "reconstruct.total"} <= set(job.timings)
+    assert {"fetch", "reconstruct", "assets", "photos", "tiles", "reconstruct.total"} <= set(
+        job.timings
+    )
     with capp.session_factory()() as session:
         model = session.get(Model, job.model_id)
     for name in (
@@ -94,6 +96,12 @@ def test_reconstruction_job_stores_one_model_with_assets_and_redelivery_is_a_no_
         assert name in model.assets, name
     assert sum(n.startswith("photos/") and n.endswith(".jpg") for n in model.assets) >= 3
     assert model.version == 1 and model.report["quality"]["tablet_pixels"] > 0
+    # The tiles for streaming: recorded once, their stats in the report.
+    assert {n for n in model.assets if n.startswith("tiles/")} == {
+        "tiles/index.json",
+        "tiles/files.json",
+    }
+    assert model.report["tiles"]["tiles_3d"] >= 1
     # The same message delivered again (acks_late after a crash before the ack).
     assert tasks.reconstruct_scan.apply(args=[job_id]).get() == "succeeded"
     with capp.session_factory()() as session:
@@ -110,7 +118,12 @@ def test_reconstruction_job_stores_one_model_with_assets_and_redelivery_is_a_no_
     assert derived.state == JobState.succeeded and derived.model_id == model.id
     with capp.session_factory()() as session:
         assert session.scalar(select(func.count()).select_from(Model)) == 1
-        assert "accessibility.png" in session.get(Model, model.id).assets
+        assets = session.get(Model, model.id).assets
+        assert "accessibility.png" in assets
+        # Tiles rebuilt in place: the same tileset, still recorded once.
+        assert "tiles/index.json" in assets and "tiles/3d/tileset.json" not in assets
+    files = storage_from_settings(env).read_bytes(f"{model.storage_prefix}/tiles/files.json")
+    assert "3d/tileset.json" in files.decode()
 
 
 def test_a_job_running_with_a_live_heartbeat_is_left_alone(env):

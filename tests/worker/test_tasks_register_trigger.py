@@ -1,6 +1,7 @@
 """worker.tasks starts the tablet's registration by itself (in-process, fake reconstruction):
 one register job once two faces have models, none for one face, none twice for redelivered
-or duplicated completions, a new one for a face model newer than the last registration."""
+or duplicated completions, a new one for a face model newer than the last registration, and
+one for a set of faces uploaded together, after its last face (succeeded or failed)."""
 
 from __future__ import annotations
 
@@ -169,3 +170,32 @@ def test_a_broker_that_is_down_leaves_the_register_job_queued_for_the_sweeper(en
     assert register.state == JobState.queued and register.enqueued_at is None
     with capp.session_factory()() as session:
         assert session.get(Job, job_id).state == JobState.succeeded
+
+
+def test_a_set_of_faces_uploaded_together_is_registered_once_after_its_last_face(env):
+    tablet_id = _tablet()
+    faces = ("obverse", "top", "bottom", "left", "right", "reverse")
+    job_ids = [_scan_job(tablet_id, face) for face in faces]  # all six uploaded, queued
+    for job_id in job_ids[:-1]:
+        assert tasks.reconstruct_scan.apply(args=[job_id]).get() == "succeeded"
+        assert _register_jobs(tablet_id) == [] and env.sent == []  # faces still pending
+    assert tasks.reconstruct_scan.apply(args=[job_ids[-1]]).get() == "succeeded"
+    (register,) = _register_jobs(tablet_id)
+    assert register.state == JobState.queued and len(env.sent) == 1
+
+
+def test_a_failed_last_face_still_starts_the_registration_of_the_others(env, monkeypatch):
+    tablet_id = _tablet()
+    first, second, last = (_scan_job(tablet_id, f) for f in ("obverse", "reverse", "top"))
+    for job_id in (first, second):
+        assert tasks.reconstruct_scan.apply(args=[job_id]).get() == "succeeded"
+    assert _register_jobs(tablet_id) == []
+
+    def broken(beat, job):
+        tasks._fail(job.id, "the bundle's fringe frames are unreadable")
+        return "failed"
+
+    monkeypatch.setattr(tasks, "_reconstruct", broken)
+    assert tasks.reconstruct_scan.apply(args=[last]).get() == "failed"
+    (register,) = _register_jobs(tablet_id)
+    assert register.state == JobState.queued

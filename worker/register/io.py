@@ -14,6 +14,7 @@ from worker.durable import replace_dir_atomic, write_new_file
 from worker.register.pointcloud import ScanCloud, scan_cloud
 
 __all__ = [
+    "QUALITY_MAPS",
     "SHADING_MAPS",
     "RegisterInputError",
     "face_asset_dir",
@@ -24,6 +25,15 @@ __all__ = [
 
 # A face model's image-grid shading maps (worker/assets.py) that the whole tablet serves per face.
 SHADING_MAPS = ("curvature.png", "curvature_coarse.png", "accessibility.png")
+# A face model's per-pixel quality maps (docs/reconstruction.md, quality/*.npy), carried into
+# the whole tablet per face on the face's image grid (what a viewer shows as trust).
+QUALITY_MAPS = (
+    "photometric_residual.npy",
+    "lights_used.npy",
+    "fringe_modulation.npy",
+    "fringe_disagreement_um.npy",
+    "guard.npy",
+)
 
 
 def face_asset_dir(label: str) -> str:
@@ -88,6 +98,12 @@ def load_model_dir(path: str | os.PathLike) -> tuple[ScanCloud, dict]:
         # The face model's shading maps, image grid, passed on as they are to the whole tablet.
         "shading_maps": {
             f.name: f.read_bytes() for f in sorted(d.glob("*.png")) if f.name in SHADING_MAPS
+        },
+        # Its quality maps likewise (bytes of the .npy files; the grid is the face's own).
+        "quality_maps": {
+            name: (d / "quality" / name).read_bytes()
+            for name in QUALITY_MAPS
+            if (d / "quality" / name).is_file()
         },
     }
 

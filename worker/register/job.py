@@ -4,7 +4,8 @@ Fetches the latest model of each scan of the job's tablet, registers them
 (:func:`worker.register.run.register_model_dirs`) and stores the result as a tablet-level
 model (no scan) through ``backend.jobs.mark_succeeded``: its assets are ``model.glb`` (the
 one-node-per-face scene, so the viewer shows the whole tablet), ``faces/<label>/*.png`` (each
-face's full-resolution normals, blending weight and shading maps), ``merged.ply``,
+face's full-resolution normals blended across the seams, quality weight and shading maps),
+``faces/<label>/quality/*.npy`` (the face's quality maps), ``merged.ply``,
 ``transforms.json``, ``report.json``, ``fatcross/*.png`` and ``tiles/`` (each face's
 streaming tiles and the root tileset, ``worker.tiles.tablet``).
 """
@@ -27,6 +28,7 @@ from backend.licences import effective
 from backend.tables import Job, Model, Tablet
 from worker.assets import AssetError, derive_assets
 from worker.register.io import (
+    QUALITY_MAPS,
     SHADING_MAPS,
     RegisterInputError,
     face_asset_dir,
@@ -48,6 +50,7 @@ MODEL_FILES = (
     "mask.png",
     "albedo.png",
     *SHADING_MAPS,
+    *(f"quality/{name}" for name in QUALITY_MAPS),
 )
 
 
@@ -129,6 +132,7 @@ def run_job(job_id: int, session_factory, storage, progress: Callable[..., None]
         for scan_id, prefix in models:
             d = work / f"scan-{scan_id}"
             d.mkdir()
+            (d / "quality").mkdir()
             for file in MODEL_FILES:
                 if storage.exists(f"{prefix}/{file}"):
                     storage.get_file(f"{prefix}/{file}", d / file)

@@ -14,11 +14,11 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 from PIL import Image
-from scipy.ndimage import distance_transform_edt
 
 from worker.recon.glb import decimation_step
 from worker.recon.gltf_frame import wrap_scene_in_gltf_frame
 from worker.recon.mesh import grid_mesh as recon_grid_mesh
+from worker.register.blend import face_weight
 from worker.register.o3d import o3d, point_cloud, transform_points
 from worker.register.pointcloud import ScanCloud
 
@@ -98,31 +98,30 @@ def grid_mesh(
 
 
 def face_normal_map(
-    normals: np.ndarray, mask: np.ndarray, *, pixel_size_um: float, feather_mm: float = 0.5
+    normals: np.ndarray,
+    mask: np.ndarray,
+    *,
+    pixel_size_um: float,
+    feather_mm: float = 0.5,
+    weight: np.ndarray | None = None,
 ) -> np.ndarray:
     """(H, W, 4) uint8: RGB = (n + 1)/2 of the scan-frame normals (as a face model's
-    normals.png), A = 255·w, the face's blending weight where faces of the whole tablet overlap.
-
-    w = min(1, d / feather) · cos²θ: d is the Euclidean distance (px) to the nearest pixel off
-    the mask (pixels at the rim mix tablet and background), θ the normal's tilt from the view
-    axis (−z); cos²θ because a height sample's variance along the normal grows as 1/cos²θ
-    (the weighting of `worker.register.joint`), so the face that saw a stretch more squarely
-    measured it better. The viewer draws, in each overlap, the face of largest weight.
+    normals.png), A = 255·w, the face's quality weight (`worker.register.blend.face_weight`,
+    computed from these normals unless ``weight`` is given, e.g. the face's own weight with
+    normals blended across the seams). The viewer draws, in each overlap, the face of largest
+    weight; with blended normals the faces agree there, so the change shows no seam.
     """
     n = np.asarray(normals, np.float64)
     m = np.asarray(mask, bool)
-    if n.ndim != 3 or n.shape[2] != 3 or n.shape[:2] != m.shape:
-        raise ValueError(f"normals must be (H, W, 3) and mask (H, W); got {n.shape}, {m.shape}")
-    if not pixel_size_um > 0 or not feather_mm > 0:
-        raise ValueError("pixel_size_um and feather_mm must be > 0")
+    w = face_weight(n, m, pixel_size_um=pixel_size_um, feather_mm=feather_mm)
+    if weight is not None:
+        if np.shape(weight) != m.shape:
+            raise ValueError(f"weight must be (H, W) like the mask; got {np.shape(weight)}")
+        w = np.asarray(weight, np.float64)
     ok = m & np.all(np.isfinite(n), axis=2)
-    feather_px = max(2.0, feather_mm * 1000.0 / pixel_size_um)
-    dist_px = distance_transform_edt(np.pad(ok, 1))[1:-1, 1:-1]
-    cos_tilt = np.clip(-np.nan_to_num(n[..., 2]), 0.0, 1.0)
-    weight = np.minimum(1.0, dist_px / feather_px) * cos_tilt**2
     rgb = np.clip(np.rint((np.nan_to_num(n) + 1.0) * 127.5), 0, 255)
     rgb[~ok] = (128, 128, 0)  # (0, 0, -1): facing the camera, never drawn (weight 0)
-    alpha = np.where(ok, np.rint(255 * weight), 0)
+    alpha = np.where(ok, np.rint(255 * np.clip(w, 0.0, 1.0)), 0)
     return np.concatenate([rgb, alpha[..., None]], axis=2).astype(np.uint8)
 
 

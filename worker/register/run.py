@@ -10,45 +10,78 @@ import numpy as np
 from scipy import ndimage
 
 from worker.bundle import is_simulated
+from worker.register.blend import FaceGrid, blend_faces, face_weight
 from worker.register.fatcross import FaceMaps
 from worker.register.io import face_asset_dir, load_model_dir
 from worker.register.merge import face_normal_map, grid_mesh, merged_surface, scene_glb
 from worker.register.plates import DEFAULT_LICENCE, PlateInfo, fatcross_files
 from worker.register.refine import register_scans
 
-__all__ = ["face_files", "register_model_dirs", "whole_tablet_model"]
+__all__ = ["blend_loaded", "face_files", "register_model_dirs", "whole_tablet_model"]
 
 DEFAULT_PX_PER_MM = 600 / 25.4  # 600 dpi
 
 
 def whole_tablet_model(loaded: list[tuple], transforms: list) -> dict[str, bytes]:
     """The whole tablet for the viewer: ``model.glb`` (one node per face, scan → tablet
-    transform, image-grid TEXCOORD_0, albedo) and every face's maps (`face_files`).
+    transform, image-grid TEXCOORD_0, albedo) and every face's maps (`face_files`), with the
+    normals and albedo blended across the seams where faces overlap (`blend_faces`).
     ``loaded``: `load_model_dir` results; ``transforms``: 4×4 scan → tablet (mm), same order."""
+    blended = blend_loaded(loaded, transforms)
     meshes = {
         c.label: grid_mesh(
-            raw["height_um"], raw["mask"], raw["albedo"], pixel_size_um=raw["pixel_size_um"]
+            raw["height_um"], raw["mask"], albedo, pixel_size_um=raw["pixel_size_um"]
         )
-        for c, raw in loaded
+        for (c, raw), (_, albedo) in zip(loaded, blended, strict=True)
     }
     labels = [c.label for c, _ in loaded]
     files = {"model.glb": scene_glb(meshes, dict(zip(labels, transforms, strict=True)))}
-    for c, raw in loaded:
-        files.update(face_files(c.label, raw))
+    for (c, raw), (normals, _) in zip(loaded, blended, strict=True):
+        files.update(face_files(c.label, raw, normals=normals))
     return files
 
 
-def face_files(label: str, raw: dict) -> dict[str, bytes]:
+def blend_loaded(loaded: list[tuple], transforms: list) -> list[tuple]:
+    """Per face, (normals, albedo as uint8 RGB or None) blended across the seams: the
+    stored albedo is blended in its own (sRGB-encoded) scale, the same for every face."""
+    faces = [
+        FaceGrid(
+            raw["height_um"],
+            raw["normals"],
+            raw["mask"],
+            None if raw["albedo"] is None else _rgb8(raw["albedo"]).astype(np.float64),
+            raw["pixel_size_um"],
+            np.asarray(t, np.float64),
+        )
+        for (_, raw), t in zip(loaded, transforms, strict=True)
+    ]
+    out = []
+    for normals, albedo in blend_faces(faces):
+        rgb8 = None if albedo is None else np.clip(np.rint(albedo), 0, 255).astype(np.uint8)
+        out.append((normals, rgb8))
+    return out
+
+
+def face_files(label: str, raw: dict, *, normals: np.ndarray | None = None) -> dict[str, bytes]:
     """One face's full-resolution maps for the whole tablet, on its own image grid (the GLB
-    node of that face carries the image-grid TEXCOORD_0): ``faces/<label>/normals.png``
-    (scan-frame normals with the blending weight in alpha, `face_normal_map`) and the face
-    model's shading maps (curvature, accessibility) as they are. The albedo is the node's
-    baseColorTexture in model.glb."""
+    node of that face carries the image-grid TEXCOORD_0 and the scan → tablet transform):
+    ``faces/<label>/normals.png`` (``normals``, default the face's own, in its scan frame,
+    with the face's own quality weight in alpha, `face_normal_map`), the face model's shading
+    maps (curvature, accessibility) and its quality maps (``quality/*.npy``) as they are.
+    The albedo is the node's baseColorTexture in model.glb."""
     prefix = face_asset_dir(label)
-    rgba = face_normal_map(raw["normals"], raw["mask"], pixel_size_um=raw["pixel_size_um"])
+    own = face_weight(raw["normals"], raw["mask"], pixel_size_um=raw["pixel_size_um"])
+    rgba = face_normal_map(
+        raw["normals"] if normals is None else normals,
+        raw["mask"],
+        pixel_size_um=raw["pixel_size_um"],
+        weight=own,
+    )
     out = {f"{prefix}/normals.png": _png(rgba)}
     for name, data in raw.get("shading_maps", {}).items():
         out[f"{prefix}/{name}"] = data
+    for name, data in raw.get("quality_maps", {}).items():
+        out[f"{prefix}/quality/{name}"] = data
     return out
 
 
@@ -139,6 +172,14 @@ def register_model_dirs(
         "merged": {"vertices": len(merged.vertices), "triangles": len(merged.faces)},
         "fatcross": fatcross_report,
         "simulated": info.simulated,
+        # What each face carries into the whole tablet (docs/registration.md, "Faces").
+        "faces": {
+            c.label: {
+                "assets": face_asset_dir(c.label),
+                "quality_maps": sorted(raw.get("quality_maps", {})),
+            }
+            for c, raw in loaded
+        },
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
     }
     files["transforms.json"] = json.dumps(transforms, indent=1).encode()

@@ -15,10 +15,25 @@ import numpy as np
 from worker.simulate.noise import NoiseModel
 from worker.simulate.rig import CHANNELS, FrameSpec
 
-__all__ = ["FIELD_UM", "PRESETS", "Preset", "frame_file", "manifest", "periods_um", "plan_frames"]
+__all__ = [
+    "FIELD_UM",
+    "FRAME_MARGIN_UM",
+    "PAPER_PIXEL_UM",
+    "PRESETS",
+    "Preset",
+    "frame_file",
+    "frame_size_for",
+    "manifest",
+    "periods_um",
+    "plan_frames",
+]
 
 # The paper's camera: 1280×1024 pixels of 26.8 µm on the object plane.
-FIELD_UM = (1280 * 26.8, 1024 * 26.8)
+PAPER_PIXEL_UM = 26.8
+FIELD_UM = (1280 * PAPER_PIXEL_UM, 1024 * PAPER_PIXEL_UM)
+# Support seen around a tablet when the frame follows the tablet (frame_size_for): enough
+# for the mask and the reference statistics, little enough to cost few pixels.
+FRAME_MARGIN_UM = 1500.0
 PERIODS_ACROSS = tuple(0.25 * 2**k for k in range(10))  # 0.25 .. 128
 PHASES_DEG = (0.0, 90.0, 180.0, 270.0)
 
@@ -62,6 +77,21 @@ PRESETS: dict[str, Preset] = {
 def pixel_size_for(width: int, height: int) -> float:
     """Pixel size (µm) that keeps the paper's field of view (34.3 × 27.4 mm) in the frame."""
     return max(FIELD_UM[0] / width, FIELD_UM[1] / height)
+
+
+def frame_size_for(
+    extent_um: tuple[float, float], pixel_size_um: float, margin_um: float = FRAME_MARGIN_UM
+) -> tuple[int, int]:
+    """(width, height) px of a frame that holds an object ``extent_um`` (x, y) across plus
+    ``margin_um`` of support on every side, at ``pixel_size_um``: the field follows the
+    object, so a small tablet at the paper's 26.8 µm gives small frames. Even sizes."""
+    if pixel_size_um <= 0:
+        raise ValueError(f"pixel size must be > 0 µm, got {pixel_size_um}")
+    out = []
+    for extent in extent_um:
+        n = int(np.ceil((float(extent) + 2 * margin_um) / pixel_size_um))
+        out.append(max(16, n + n % 2))
+    return out[0], out[1]
 
 
 def periods_um(azimuth_deg: float, width: int, height: int, pixel_size_um: float) -> list[float]:

@@ -19,13 +19,21 @@ import trimesh
 
 from worker.bundle import write_bundle
 from worker.durable import npy_bytes, replace_dir_atomic, write_file_atomic, write_new_file
-from worker.simulate.acquisition import PRESETS, frame_file, manifest, pixel_size_for, plan_frames
+from worker.simulate.acquisition import (
+    PAPER_PIXEL_UM,
+    PRESETS,
+    frame_file,
+    frame_size_for,
+    manifest,
+    pixel_size_for,
+    plan_frames,
+)
 from worker.simulate.meshview import MeshTablet, load_mesh, mesh_points, render_mesh_view
 from worker.simulate.noise import NoiseModel, noise_model
 from worker.simulate.physics import IDEAL, Physics, physics_to_dict, resolve_physics
 from worker.simulate.rig import Rig, render_frame
 from worker.simulate.support import scale_albedo, with_support
-from worker.simulate.tablet import FACE_POSES, FACES, Tablet, make_tablet
+from worker.simulate.tablet import FACE_POSES, FACES, Tablet, check_size_mm, make_tablet
 from worker.simulate.view import View, cast_grid, render_view
 
 __all__ = [
@@ -35,6 +43,7 @@ __all__ = [
     "scan_rig",
     "scene",
     "simulate_scan",
+    "view_extent_um",
     "wedge_records",
 ]
 
@@ -183,6 +192,40 @@ def _check_fringe_range(view: View, preset_polar_deg: float, coarsest_um: float)
         )
 
 
+def view_extent_um(tablet: Tablet | MeshTablet, pose: np.ndarray) -> tuple[float, float]:
+    """The tablet's extent (x, y) µm across the view of rotation ``pose`` (tablet→view): the
+    body's bounding box turned into the view (a mesh: its vertices)."""
+    pose = np.asarray(pose, float)
+    if isinstance(tablet, MeshTablet):
+        v = tablet.vertices_um @ pose.T
+        span = v.max(axis=0) - v.min(axis=0)
+        return float(span[0]), float(span[1])
+    half = np.abs(pose) @ tablet.pillow.bounding_half_um
+    return float(2 * half[0]), float(2 * half[1])
+
+
+def face_grid(
+    tablet: Tablet | MeshTablet,
+    pose: np.ndarray,
+    *,
+    size: tuple[int, int] | None,
+    pixel_size_um: float | None,
+    preset: str,
+) -> tuple[tuple[int, int], float]:
+    """Frame size (px) and pixel size (µm) of one view.
+
+    ``size`` given: that frame, at ``pixel_size_um`` or else the pixel that keeps the paper's
+    field (34.3 × 27.4 mm) in it. ``pixel_size_um`` alone: the frame follows the tablet seen
+    through ``pose`` (``frame_size_for``). Neither: the preset's frame over the paper's field.
+    """
+    if size is not None:
+        return size, float(pixel_size_um or pixel_size_for(*size))
+    if pixel_size_um is None:
+        size = (PRESETS[preset].width, PRESETS[preset].height)
+        return size, pixel_size_for(*size)
+    return frame_size_for(view_extent_um(tablet, pose), pixel_size_um), float(pixel_size_um)
+
+
 def scan_rig(
     seed: int,
     width: int,
@@ -210,13 +253,15 @@ def scene(
     preset: str = "quick",
     noise: NoiseModel,
     physics: Physics = IDEAL,
+    pixel_size_um: float | None = None,
 ) -> tuple[View, Rig]:
     """The view and instrument that ``simulate_scan`` uses for one pose, for callers that
     render frames themselves (the rig agent's simulated camera: ``render_frame(view, frame,
     noise, rng, rig=rig)``). ``physics`` adds the support and clay albedo to the view and
-    rides in the rig (``render_frame`` applies its camera overrides to ``noise``)."""
+    rides in the rig (``render_frame`` applies its camera overrides to ``noise``).
+    ``pixel_size_um``: default, the pixel that keeps the paper's field in ``size``."""
     width, height = size
-    pixel = pixel_size_for(width, height)
+    pixel = float(pixel_size_um or pixel_size_for(width, height))
     render = render_mesh_view if isinstance(tablet, MeshTablet) else render_view
     view = render(
         tablet,
@@ -244,14 +289,26 @@ def _simulate_face(
     pose: np.ndarray | None = None,
     physics: Physics = IDEAL,
     physics_seed: int | None = None,
+    pixel_size_um: float | None = None,
+    scan_suffix: str = "",
 ) -> tuple[Path, Path, View, int]:
     from tqdm import tqdm
 
     preset = PRESETS[preset_name]
-    width, height = size
     pose = FACE_POSES[face] if pose is None else pose
+    size, pixel_um = face_grid(
+        tablet, pose, size=size, pixel_size_um=pixel_size_um, preset=preset_name
+    )
+    width, height = size
     view, rig = scene(
-        tablet, pose, seed=seed, size=size, preset=preset_name, noise=noise, physics=physics
+        tablet,
+        pose,
+        seed=seed,
+        size=size,
+        preset=preset_name,
+        noise=noise,
+        physics=physics,
+        pixel_size_um=pixel_um,
     )
     pixel = view.pixel_size_um
     camera = physics.camera(noise)
@@ -298,6 +355,8 @@ def _simulate_face(
         psf_sigma_px=physics.calibrated_psf_px(noise),
         physics_name=physics.name,
     )
+    if scan_suffix:
+        doc["scan"]["id"] += scan_suffix
     face_dir.mkdir(parents=True, exist_ok=True)
     bundle = face_dir / ("bundle.zip" if as_zip else "bundle")
     write_bundle(bundle, doc, images, as_zip=as_zip)
@@ -320,6 +379,8 @@ def simulate_scan(
     pose: np.ndarray | None = None,
     physics: str | Physics = "ideal",
     physics_seed: int | None = None,
+    tablet_mm: tuple[float, float, float] | None = None,
+    pixel_size_um: float | None = None,
 ) -> SimulationResult:
     """Simulate the scan of one face (or ``"all"`` six) of the synthetic tablet of ``seed``,
     or of the triangle mesh file ``mesh`` (mm, obverse toward -z; no wedges.json entries).
@@ -330,6 +391,12 @@ def simulate_scan(
 
     ``pose`` (3×3 rotation tablet→view) replaces the face's standard pose, for oblique views;
     ``face`` then only labels the scan (``"other"`` is allowed).
+
+    ``tablet_mm``: the synthetic tablet's outer width, height and thickness (mm; default
+    28 × 22 × 12). With it, and no ``size``, each face's frame follows the tablet at
+    ``pixel_size_um`` (default the paper's 26.8 µm): a small tablet gives small frames
+    (``face_grid``), and the scan id ends in ``-t<W>x<H>x<T>mm``. ``pixel_size_um`` alone
+    does the same for the standard tablet (or a mesh).
 
     Refuses (FileExistsError) to overwrite an existing bundle or gt folder.
     """
@@ -353,14 +420,28 @@ def simulate_scan(
     drawn = resolve_physics(physics, physics_seed)
     if mesh is not None and drawn.shape != "standard":
         drawn = dataclasses.replace(drawn, shape="standard")
-    size = size or (PRESETS[preset].width, PRESETS[preset].height)
+    if pixel_size_um is not None and not (
+        isinstance(pixel_size_um, int | float) and 1.0 <= pixel_size_um <= 2000.0
+    ):
+        raise ValueError(f"pixel size: must be 1..2000 µm, got {pixel_size_um!r}")
+    scan_suffix = ""
+    if tablet_mm is not None:
+        if mesh is not None:
+            raise ValueError("tablet size: a mesh has its own size; give one of them")
+        check_size_mm(tablet_mm)
+        scan_suffix = "-t{:g}x{:g}x{:g}mm".format(*tablet_mm)
+        if size is None and pixel_size_um is None:
+            pixel_size_um = PAPER_PIXEL_UM
     out = Path(out_dir)
     dirs = {f: (out / f if face == "all" else out) for f in faces}
     for d in dirs.values():
         for name in ("bundle", "bundle.zip", "gt"):
             if (d / name).exists():
                 raise FileExistsError(f"out: {d / name} exists; choose an empty --out")
-    tablet = load_mesh(mesh) if mesh is not None else make_tablet(seed, shape=drawn.shape)
+    if mesh is not None:
+        tablet = load_mesh(mesh)
+    else:
+        tablet = make_tablet(seed, shape=drawn.shape, size_mm=tablet_mm)
     bundles, gts, views, n = {}, {}, {}, 0
     for f in faces:
         bundles[f], gts[f], views[f], k = _simulate_face(
@@ -376,6 +457,8 @@ def simulate_scan(
             pose=pose,
             physics=drawn,
             physics_seed=physics_seed,
+            pixel_size_um=pixel_size_um,
+            scan_suffix=scan_suffix,
         )
         n += k
     if face == "all":

@@ -17,7 +17,15 @@ from worker.simulate.carvings import Polyhedron, Wedge, chip, groove_segment, we
 from worker.simulate.pillow import Pillow, make_pillow
 from worker.simulate.raycast import Cavities, cast_rays
 
-__all__ = ["FACE_POSES", "FACES", "Albedo", "Tablet", "make_tablet", "surface_points"]
+__all__ = [
+    "FACE_POSES",
+    "FACES",
+    "Albedo",
+    "Tablet",
+    "check_size_mm",
+    "make_tablet",
+    "surface_points",
+]
 
 FACE_POSES: dict[str, np.ndarray] = {
     "obverse": np.eye(3),
@@ -236,6 +244,28 @@ def _make_albedo(rng: np.random.Generator, pillow: Pillow) -> Albedo:
 
 
 SHAPES = ("standard", "flat", "curved", "broken")
+# Outer sizes a tablet may have (mm): from the smallest school tablets and labels to large
+# ones; the thickness at most the smaller face side, so that the body stays a tablet.
+SIZE_MM_RANGE = (8.0, 120.0)
+THICKNESS_MM_RANGE = (4.0, 60.0)
+
+
+def check_size_mm(size_mm) -> None:
+    """ValueError naming what is wrong with a tablet size (width, height, thickness) in mm."""
+    try:
+        w, h, t = (float(v) for v in size_mm)
+    except (TypeError, ValueError):
+        raise ValueError(f"tablet size: expected three numbers (mm), got {size_mm!r}") from None
+    lo, hi = SIZE_MM_RANGE
+    if not (lo <= w <= hi and lo <= h <= hi):
+        raise ValueError(
+            f"tablet size: width and height must be {lo:g}..{hi:g} mm, got {w:g} × {h:g}"
+        )
+    t_lo, t_hi = THICKNESS_MM_RANGE
+    if not (t_lo <= t <= min(t_hi, w, h)):
+        raise ValueError(
+            f"tablet size: thickness must be {t_lo:g} mm .. min(width, height, {t_hi:g} mm), got {t:g}"
+        )
 
 
 def _reshape(pillow: Pillow, shape: str) -> Pillow:
@@ -293,16 +323,26 @@ def _inside(pieces: list[Polyhedron], point_um: np.ndarray) -> bool:
     return any(np.all(p.normals @ point_um <= p.offsets) for p in pieces)
 
 
-def make_tablet(seed: int, *, shape: str = "standard") -> Tablet:
+def make_tablet(
+    seed: int, *, shape: str = "standard", size_mm: tuple[float, float, float] | None = None
+) -> Tablet:
     """The synthetic tablet of ``seed``: the same seed always gives the same tablet.
 
     ``shape`` (``SHAPES``) changes the body: ``flat``, ``curved`` or ``broken`` (one side
     broken off; its wedges go with it). ``standard`` is the tablet of the seed unchanged.
+    ``size_mm``: the body's outer width, height and thickness (default 28 × 22 × 12 mm);
+    the wedges keep their real size (1-2.6 mm), so a smaller tablet carries fewer signs.
     """
     if shape not in SHAPES:
         raise ValueError(f"shape: unknown {shape!r}; choose from {SHAPES}")
     rng = np.random.default_rng([seed, 0x7AB1E7])
-    pillow = _reshape(make_pillow(rng), shape)
+    if size_mm is None:
+        body = make_pillow(rng)
+    else:
+        check_size_mm(size_mm)
+        w, h, t = (1000.0 * float(v) for v in size_mm)
+        body = make_pillow(rng, width_um=w, height_um=h, thickness_um=t)
+    pillow = _reshape(body, shape)
     wedges: list[Wedge] = []
     pieces: list[Polyhedron] = []
     for face in ("obverse", "reverse"):

@@ -34,6 +34,10 @@ export function classifyAssets(assets) {
     thumbnail: find(/(^|\/)thumbnail\.png$/)[0] ?? null,
     gloss: find(/^gloss\.png$/)[0] ?? null,
     glossInfo: find(/^gloss\.json$/)[0] ?? null,
+    // worker/trust_assets.py: the trust mode's map and legend, and σ_h for the ± of measures
+    trust: find(/(^|\/)trust\.png$/)[0] ?? null,
+    trustMeta: find(/(^|\/)trust\.json$/)[0] ?? null,
+    uncertainty: find(/(^|\/)uncertainty_um\.npy$/)[0] ?? null,
   };
 }
 
@@ -71,7 +75,7 @@ export async function fetchBytes(url, { signal, onBytes = () => {} } = {}) {
   return out.buffer;
 }
 
-async function bytesToTexture(buffer, { srgb }) {
+async function bytesToTexture(buffer, { srgb, nearest = false }) {
   // 'none' everywhere: normals and curvature are data, not pictures; no colour management.
   const bitmap = await createImageBitmap(new Blob([buffer]), {
     imageOrientation: 'none',
@@ -81,9 +85,10 @@ async function bytesToTexture(buffer, { srgb }) {
   const texture = new THREE.Texture(bitmap);
   texture.flipY = false;
   texture.colorSpace = srgb ? THREE.SRGBColorSpace : THREE.NoColorSpace;
-  texture.generateMipmaps = true;
-  texture.minFilter = THREE.LinearMipmapLinearFilter;
-  texture.magFilter = THREE.LinearFilter;
+  // nearest: a map of codes (trust.png's classes) must not be interpolated between codes.
+  texture.generateMipmaps = !nearest;
+  texture.minFilter = nearest ? THREE.NearestFilter : THREE.LinearMipmapLinearFilter;
+  texture.magFilter = nearest ? THREE.NearestFilter : THREE.LinearFilter;
   texture.wrapS = THREE.ClampToEdgeWrapping;
   texture.wrapT = THREE.ClampToEdgeWrapping;
   texture.needsUpdate = true;
@@ -263,6 +268,7 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
     accessibility: null,
     quality: null,
     gloss: null, // {texture, scale, exponent}: the scan's measured gloss (worker/photos.py)
+    trust: null, // {texture, meta} once loaded, false when the model has no trust.png
   };
   const created = [];
   const track = (t) => {
@@ -328,7 +334,7 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
    * @returns {Promise<void>}
    */
   out.ensure = (kind) => {
-    if (out[kind] !== null || !['curvature', 'accessibility', 'quality'].includes(kind)) {
+    if (out[kind] !== null || !['curvature', 'accessibility', 'quality', 'trust'].includes(kind)) {
       return Promise.resolve();
     }
     if (!pending.has(kind)) {
@@ -338,6 +344,18 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
   };
 
   async function loadKind(kind) {
+    if (kind === 'trust') {
+      if (!names.trust) {
+        out.trust = false;
+        return;
+      }
+      const [png, meta] = await Promise.all([
+        get(names.trust),
+        names.trustMeta ? get(names.trustMeta).then((b) => JSON.parse(new TextDecoder().decode(b))) : {},
+      ]);
+      out.trust = { texture: track(await bytesToTexture(png, { srgb: false, nearest: true })), meta };
+      return;
+    }
     if (out.faces.length && kind !== 'quality') {
       // A whole tablet: each face's own map, on its own image grid.
       let any = false;

@@ -14,7 +14,36 @@ function el(name, attrs = {}, text) {
 }
 
 /**
- * @param {{distanceMm: ArrayLike<number>, heightUm: ArrayLike<number>}} profile
+ * The band h ± σ_h where both are finite, as SVG path data: one closed polygon per run of
+ * samples (a gap breaks the band as it breaks the line). Pure; sx, sy map data to the chart.
+ * @param {{distanceMm: ArrayLike<number>, heightUm: ArrayLike<number>, sigmaUm: ArrayLike<number>}} profile
+ * @param {(x: number) => number} sx
+ * @param {(y: number) => number} sy
+ * @returns {string}
+ */
+export function bandPath(profile, sx, sy) {
+  const { distanceMm: x, heightUm: h, sigmaUm: s } = profile;
+  let d = '';
+  let run = [];
+  const flush = () => {
+    if (run.length >= 2) {
+      const up = run.map((i) => `${sx(x[i]).toFixed(1)},${sy(h[i] + s[i]).toFixed(1)}`);
+      const down = run.map((i) => `${sx(x[i]).toFixed(1)},${sy(h[i] - s[i]).toFixed(1)}`).reverse();
+      d += `M${up.join('L')}L${down.join('L')}Z`;
+    }
+    run = [];
+  };
+  for (let i = 0; i < x.length; i++) {
+    if (Number.isFinite(h[i]) && Number.isFinite(s[i])) run.push(i);
+    else flush();
+  }
+  flush();
+  return d;
+}
+
+/**
+ * @param {{distanceMm: ArrayLike<number>, heightUm: ArrayLike<number>, sigmaUm?: ArrayLike<number>}} profile
+ *   with `sigmaUm` (σ_h per sample, trust.js) a band h ± σ_h is drawn under the line
  * @param {{width?: number, height?: number}} [size]
  * @returns {SVGSVGElement}
  */
@@ -23,6 +52,11 @@ export function profileChart(profile, { width = 520, height = 220 } = {}) {
   const svg = el('svg', { viewBox: `0 0 ${width} ${height}`, class: 'profile-chart', role: 'img' });
   const xr = [0, profile.distanceMm[profile.distanceMm.length - 1] || 1];
   const yr = finiteRange(profile.heightUm) ?? [0, 1];
+  if (profile.sigmaUm) {
+    const hi = finiteRange(Array.from(profile.heightUm, (h, i) => h + profile.sigmaUm[i]));
+    const lo = finiteRange(Array.from(profile.heightUm, (h, i) => h - profile.sigmaUm[i]));
+    if (hi && lo) [yr[0], yr[1]] = [Math.min(yr[0], lo[0]), Math.max(yr[1], hi[1])];
+  }
   if (yr[1] - yr[0] < 1) {
     yr[0] -= 0.5;
     yr[1] += 0.5;
@@ -46,6 +80,11 @@ export function profileChart(profile, { width = 520, height = 220 } = {}) {
     el('text', { x: 12, y: m.top + ph / 2, 'text-anchor': 'middle', transform: `rotate(-90 12 ${m.top + ph / 2})` }, 'height (µm)'),
   );
   svg.append(axes);
+  if (profile.sigmaUm) {
+    const band = el('path', { d: bandPath(profile, sx, sy), class: 'band' });
+    band.append(el('title', {}, 'height ± σ_h (height uncertainty from the trust map)'));
+    svg.append(band);
+  }
   let d = '';
   let pen = false;
   for (let i = 0; i < profile.distanceMm.length; i++) {

@@ -48,7 +48,9 @@ const raycaster = new THREE.Raycaster();
 
 /**
  * The point of `object` under a page (CSS pixel) position, or null.
- * @returns {{point: number[], uv: number[] | null} | null} point in world units (mm)
+ * @returns {{point: number[], uv: number[] | null, group: number | null, part: number | null} | null}
+ *   point in world units (mm); group: the material index hit; part: the face of a
+ *   multi-part model (the same index, null for a one-mesh model)
  */
 export function pickPoint(canvas, camera, object, clientX, clientY) {
   const rect = canvas.getBoundingClientRect();
@@ -63,7 +65,9 @@ export function pickPoint(canvas, camera, object, clientX, clientY) {
   const targets = object.isMesh ? [object] : object.children;
   const hit = raycaster.intersectObjects(targets, !object.isMesh).find((h) => materialOf(h)?.visible !== false);
   if (!hit) return null;
-  const out = { point: hit.point.toArray(), uv: hit.uv ? hit.uv.toArray() : null };
+  // part: the draw group's material index, i.e. the face of a whole tablet (null: one mesh).
+  const part = Array.isArray(object.material) ? (hit.face?.materialIndex ?? null) : null;
+  const out = { point: hit.point.toArray(), uv: hit.uv ? hit.uv.toArray() : null, group: hit.face?.materialIndex ?? null, part };
   // The mesh hit (a tile of a streamed model says which: tiles.js `describeTile`), kept out of
   // JSON and structured clones.
   Object.defineProperty(out, 'object', { value: hit.object, enumerable: false });

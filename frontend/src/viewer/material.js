@@ -10,6 +10,7 @@
  */
 import * as THREE from 'three';
 import { SHADING_MODES } from './permalink.js';
+import { EXTRAS_GLSL, extraUniforms } from './shaderExtras.js';
 
 export const MODE_INDEX = Object.freeze(Object.fromEntries(SHADING_MODES.map((m, i) => [m, i])));
 
@@ -139,26 +140,25 @@ const fragmentShader = /* glsl */ `
     return vec3(ks * uIntensity * pow(max(dot(n, normalize(l + v)), 0.0), uGlossExponent));
   }
 
-  void main() {
-    if (uSeamDepthMm > 0.0 && uHasNormalMap) seamDepth(texture(uNormalMap, vUv).a);
-    else gl_FragDepth = gl_FragCoord.z;
-    vec3 nObj = uHasNormalMap ? objectNormal(vUv, 0.0) : vNormalW;
-    vec3 n = normalize(uObjectToWorld * nObj);
-    if (!uHasNormalMap) n = normalize(vNormalW);
+  ${EXTRAS_GLSL}
+
+  vec3 shade(int mode, vec3 n, vec3 nObj) {
     vec3 colour;
-    if (uMode == 0) {          // natural colour
+    if (mode == 0) {          // natural colour
       vec3 albedo = uHasAlbedo ? texture(uAlbedoMap, vUv).rgb : uClay;
       colour = lit(albedo, n) + measuredGloss(n);
-    } else if (uMode == 1) {   // plain clay
+      if (uLumaUnsharp > 0.0 && uHasNormalMap) colour = unsharpLuma(colour, vUv, true);
+    } else if (mode == 1) {   // plain clay
       colour = lit(uClay, n);
-    } else if (uMode == 2) {   // signed mean curvature, 8-bit grey 128 = 0
+      if (uLumaUnsharp > 0.0 && uHasNormalMap) colour = unsharpLuma(colour, vUv, false);
+    } else if (mode == 2) {   // signed mean curvature, 8-bit grey 128 = 0
       if (uHasTexture) {
         float k = textureLod(uCurvatureMap, vUv, uCurvatureLod).r * 255.0 / 127.5 - 1.0;
         colour = diverging(k * uEmphasis);
       } else colour = lit(uClay, n) * 0.5;
-    } else if (uMode == 3) {   // accessibility / ambient occlusion
+    } else if (mode == 3) {   // accessibility / ambient occlusion
       colour = uHasTexture ? uClay * texture(uAccessMap, vUv).r : lit(uClay, n) * 0.5;
-    } else if (uMode == 4) {   // relief: unsharp-masked normals on a flattened tablet
+    } else if (mode == 4) {   // relief: unsharp-masked normals on a flattened tablet
       // n' = normalize(v + (1 + k)(n - blur(n))): the slow curvature of the tablet (blur) is
       // replaced by the view axis v = (0, 0, -1), and the detail n - blur(n) is amplified, so
       // every wedge reads the same wherever it sits on the curved surface.
@@ -176,21 +176,34 @@ const fragmentShader = /* glsl */ `
         n = normalize(uObjectToWorld * enhanced);
       }
       colour = lit(uClay, n);
-    } else if (uMode == 5) {   // depth: height on a colour ramp, lit by exaggerated normals
+    } else if (mode == 5) {   // depth: height on a colour ramp, lit by exaggerated normals
       float span = max(uHeightRange.y - uHeightRange.x, 1e-6);
       float t = (vHeightMm - uHeightRange.x) / span;
       vec3 ex = uHasNormalMap ? vec3(nObj.xy * uEmphasis, nObj.z) : nObj;
       n = normalize(uObjectToWorld * ex);
       colour = sequential(t) * (0.35 + 0.65 * max(dot(n, normalize(uLightDir)), 0.0));
-    } else if (uMode == 6) {   // normals as stored: RGB = (n + 1) / 2
+    } else if (mode == 6) {   // normals as stored: RGB = (n + 1) / 2
       colour = fromSrgb(nObj * 0.5 + 0.5); // shown as the PNG's own values after sRGB output
-    } else {                   // quality map on a sequential ramp
+    } else if (mode == 7) {   // quality map on a sequential ramp
       if (uHasTexture) {
         float q = texture(uQualityMap, vUv).r;
         float span = max(uQualityRange.y - uQualityRange.x, 1e-20);
         colour = q != q ? vec3(0.2) : sequential((q - uQualityRange.x) / span);
       } else colour = lit(uClay, n) * 0.5;
+    } else {                  // trust: where the heights come from, how far they hold
+      colour = uHasTrust ? trustColour(n) : lit(uClay, n) * 0.5;
     }
+    return colour;
+  }
+
+  void main() {
+    if (uSeamDepthMm > 0.0 && uHasNormalMap) seamDepth(texture(uNormalMap, vUv).a);
+    else gl_FragDepth = gl_FragCoord.z;
+    vec3 nObj = uHasNormalMap ? objectNormal(vUv, 0.0) : vNormalW;
+    if (uNormalUnsharp > 0.0 && uHasNormalMap) nObj = unsharpNormal(nObj, vUv);
+    vec3 n = normalize(uObjectToWorld * nObj);
+    if (!uHasNormalMap) n = normalize(vNormalW);
+    vec3 colour = shade(inLens() ? uLensMode : uMode, n, nObj);
     gl_FragColor = vec4(colour, 1.0);
     #include <colorspace_fragment>
   }
@@ -238,6 +251,7 @@ export function createRelightMaterial() {
       uViewDirOrtho: { value: new THREE.Vector3(0, 0, -1) },
       uSeamDepthMm: { value: 0 },
       uProjection: { value: new THREE.Matrix4() },
+      ...extraUniforms(blank),
     },
     userData: { blank },
   });
@@ -257,6 +271,8 @@ export const PART_UNIFORMS = Object.freeze([
   'uTexelSize',
   'uSeamDepthMm',
   'uHasGlossMap',
+  'uTrustMap', // trust maps are per scan, as quality maps: a face has none of its own
+  'uHasTrust',
 ]);
 
 /**

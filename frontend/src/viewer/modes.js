@@ -5,7 +5,12 @@
  */
 
 /** Shading modes whose maps load on first use. */
-export const LAZY_KINDS = Object.freeze({ curvature: 'curvature', accessibility: 'accessibility', quality: 'quality' });
+export const LAZY_KINDS = Object.freeze({
+  curvature: 'curvature',
+  accessibility: 'accessibility',
+  quality: 'quality',
+  trust: 'trust',
+});
 
 /** Which texture each shading mode needs. */
 export const MODE_NEEDS = Object.freeze({
@@ -15,6 +20,7 @@ export const MODE_NEEDS = Object.freeze({
   relief: 'normals',
   normals: 'normals',
   quality: 'quality',
+  trust: 'trust',
 });
 
 const FILE_OF = {
@@ -23,6 +29,7 @@ const FILE_OF = {
   curvature: 'curvature.png',
   accessibility: 'accessibility.png',
   quality: 'a quality map (quality/*.npy)',
+  trust: 'trust.png (made by the worker from the quality maps)',
 };
 
 /**
@@ -43,6 +50,7 @@ export function missingMessage(mode, assets, errors = {}) {
     curvature: names.curvature.length > 0,
     accessibility: Boolean(names.accessibility),
     quality: names.quality.length > 0,
+    trust: Boolean(names.trust),
   }[need];
   const file = FILE_OF[need];
   const notes = [];
@@ -69,6 +77,7 @@ function missingOnFaces(mode, assets, errors) {
     curvature: (f) => f.assets.curvature.length > 0,
     accessibility: (f) => Boolean(f.assets.accessibility),
     quality: () => assets.names.quality.length > 0,
+    trust: () => Boolean(assets.names.trust),
   };
   const notes = [];
   const list = (fs) => fs.map((f) => f.name).join(', ');

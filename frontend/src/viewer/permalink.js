@@ -8,6 +8,11 @@
  * working when the page is served from elsewhere.
  */
 
+/** What the trust mode shows (trust.js re-exports it). */
+export const TRUST_LAYERS = Object.freeze(['sources', 'uncertainty', 'disagreement']);
+
+import { defaultEnhance, LENS_MODES, RADIUS_RANGE_PX, UNSHARP_MAX } from './enhance.js';
+
 export const SHADING_MODES = Object.freeze([
   'natural',
   'clay',
@@ -17,6 +22,7 @@ export const SHADING_MODES = Object.freeze([
   'depth',
   'normals',
   'quality',
+  'trust',
 ]);
 
 export const PROJECTIONS = Object.freeze(['orthographic', 'perspective']);
@@ -29,9 +35,11 @@ export function defaultViewState() {
     // follow: the angles are relative to the camera and the light turns with it (else fixed to
     // the model, angles in its frame).
     light: { azimuthDeg: 315, polarDeg: 45, intensity: 1, ambient: 0.15, gloss: 0, follow: false },
-    shading: { mode: 'natural', curvatureScale: 0, exaggeration: 2, quality: null },
+    // trustLayer: what the trust mode shows (trust.js' TRUST_LAYERS)
+    shading: { mode: 'natural', curvatureScale: 0, exaggeration: 2, quality: null, trustLayer: 'sources' },
     hidden: [], // names of hidden parts (faces of a whole-tablet model); [] = all shown
     measure: null, // {tool: 'distance' | 'profile', points: [[x, y, z], [x, y, z]]} in mm
+    enhance: defaultEnhance(), // unsharp masking and the lens (enhance.js); lens in CSS px
   };
 }
 
@@ -88,8 +96,21 @@ export function encodeViewState(state) {
   if (s.curvatureScale) p.set('cs', String(s.curvatureScale));
   p.set('ex', num(s.exaggeration));
   if (s.quality) p.set('qm', s.quality);
+  if (s.trustLayer && s.trustLayer !== 'sources') p.set('tl', s.trustLayer);
   // One `hide` per name, not a comma list: node names may contain commas.
   for (const name of state.hidden ?? []) p.append('hide', name);
+  const e = state.enhance;
+  if (e) {
+    if (e.normalUnsharp) p.set('un', num(e.normalUnsharp));
+    if (e.lumaUnsharp) p.set('ul', num(e.lumaUnsharp));
+    if (e.radiusPx !== defaultEnhance().radiusPx) p.set('ur', num(e.radiusPx));
+    if (e.lens) {
+      p.set('lz', e.lens.mode);
+      p.set('lx', num(e.lens.x));
+      p.set('ly', num(e.lens.y));
+      p.set('lr', num(e.lens.radius));
+    }
+  }
   const m = state.measure;
   if (m && MEASURE_TOOLS[m.tool] && m.points?.length === 2) {
     p.set('mt', MEASURE_TOOLS[m.tool]);
@@ -164,6 +185,7 @@ export function decodeViewState(fragment) {
   });
   take('ex', parseNumber(p.get('ex'), 0, 20), (v) => (s.exaggeration = v));
   take('qm', /^[\w.-]{1,100}$/.test(p.get('qm') ?? '') ? p.get('qm') : undefined, (v) => (s.quality = v));
+  take('tl', TRUST_LAYERS.includes(p.get('tl')) ? p.get('tl') : undefined, (v) => (s.trustLayer = v));
 
   // Which names exist is known only once the model is loaded: the viewer ignores unknown ones.
   const hide = p.getAll('hide');
@@ -171,6 +193,20 @@ export function decodeViewState(fragment) {
   const names = [...new Set(valid)];
   state.hidden = names.slice(0, MAX_HIDDEN_PARTS);
   if (valid.length !== hide.length || names.length > MAX_HIDDEN_PARTS) ignored.push('hide');
+
+  const e = state.enhance;
+  take('un', parseNumber(p.get('un'), 0, UNSHARP_MAX), (v) => (e.normalUnsharp = v));
+  take('ul', parseNumber(p.get('ul'), 0, UNSHARP_MAX), (v) => (e.lumaUnsharp = v));
+  take('ur', parseNumber(p.get('ur'), ...RADIUS_RANGE_PX), (v) => (e.radiusPx = v));
+  if (['lz', 'lx', 'ly', 'lr'].some((k) => p.has(k))) {
+    // The lens is in CSS pixels of the canvas: a link opened on a smaller screen may put it
+    // outside; it is still restored (the reader can drag it back).
+    const mode = p.get('lz');
+    const [x, y] = ['lx', 'ly'].map((k) => parseNumber(p.get(k), -1e5, 1e5));
+    const radius = parseNumber(p.get('lr'), 1, 1e5);
+    if (LENS_MODES.includes(mode) && [x, y, radius].every((v) => v !== undefined)) e.lens = { mode, x, y, radius };
+    else ignored.push('lens');
+  }
 
   if (p.has('mt') || p.has('ma') || p.has('mb')) {
     const tool = Object.keys(MEASURE_TOOLS).find((k) => MEASURE_TOOLS[k] === p.get('mt'));

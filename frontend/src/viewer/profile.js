@@ -91,10 +91,13 @@ export function profileToCsv(profile, about = {}) {
   ]
     .filter(([, v]) => v != null && v !== false && v !== '')
     .map(([k, v]) => `# ${k}: ${clean(v)}`);
-  const lines = [...header, 'distance_mm,height_um'];
+  // With σ_h along the line (trust.js), a third column: the height's uncertainty in µm.
+  const sig = profile.sigmaUm;
+  const lines = [...header, sig ? 'distance_mm,height_um,sigma_um' : 'distance_mm,height_um'];
+  const f2 = (v) => (Number.isFinite(v) ? v.toFixed(2) : '');
   for (let i = 0; i < profile.distanceMm.length; i++) {
-    const h = profile.heightUm[i];
-    lines.push(`${profile.distanceMm[i].toFixed(4)},${Number.isFinite(h) ? h.toFixed(2) : ''}`);
+    const row = `${profile.distanceMm[i].toFixed(4)},${f2(profile.heightUm[i])}`;
+    lines.push(sig ? `${row},${f2(sig[i])}` : row);
   }
   return `${lines.join('\n')}\n`;
 }

@@ -14,6 +14,7 @@ import { niceStep, profileToCsv, sampleProfile } from './profile.js';
 import { parseNpy } from './npy.js';
 import { fetchBytes } from './assets.js';
 import { unavailableViewReason } from './views.js';
+import { fmtUm, formatDistance, profileUncertainty } from './trust.js';
 
 const $ = (id) => document.getElementById(id);
 
@@ -91,8 +92,9 @@ export function bindViewerUi(viewer, context) {
   }
   function showMeasure(kind, points) {
     lastMeasure = { tool: kind, points: points.map((p) => [...p]), lengthMm: distanceMm(points[0], points[1]) };
+    delete $('readout').dataset.uncertaintyMm;
     context.measureChanged?.();
-    return kind === 'profile' ? showProfile(points) : showDistance(points);
+    return kind === 'profile' ? showProfile(lastMeasure.points) : showDistance(lastMeasure.points);
   }
   async function showDistance(points) {
     // A streamed model: the picked points on the full-resolution heights (tiles.js).
@@ -101,6 +103,12 @@ export function bindViewerUi(viewer, context) {
     const d = distanceMm(points[0], points[1]);
     setReadout(`Distance: ${d.toFixed(2)} mm`);
     $('readout').dataset.distanceMm = String(d);
+    // The ± from the model's height uncertainty (trust.js), when it has one.
+    const pm = await context.uncertainty?.distance(points).catch(() => null);
+    if (pm != null && lastMeasure?.points === points) {
+      setReadout(`Distance: ${formatDistance(d, pm)}`);
+      $('readout').dataset.uncertaintyMm = String(pm);
+    }
   }
   let heightGrid = null; // {url, grid}
   async function loadHeightGrid() {
@@ -129,10 +137,15 @@ export function bindViewerUi(viewer, context) {
       } else {
         lastProfile = sampleProfile(await loadHeightGrid(), points[0], points[1]);
       }
+      // σ_h along the line (trust.js): a band on the chart, ± in the readout and the CSV.
+      const sigmaUm = await context.uncertainty?.profile(lastProfile, points).catch(() => null);
+      if (sigmaUm) lastProfile.sigmaUm = sigmaUm;
       const chart = $('profile-chart');
       chart.replaceChildren(profileChart(lastProfile));
       $('profile-panel').hidden = false;
-      setReadout(`Profile: ${lastProfile.lengthMm.toFixed(2)} mm, ${lastProfile.heightUm.length} samples`);
+      const u = sigmaUm ? profileUncertainty(lastProfile.heightUm, sigmaUm) : null;
+      const pm = u ? `, heights ± ${fmtUm(u.medianUm)} (median; up to ${fmtUm(u.maxUm)})` : '';
+      setReadout(`Profile: ${lastProfile.lengthMm.toFixed(2)} mm, ${lastProfile.heightUm.length} samples${pm}`);
     } catch (err) {
       setReadout(`Profile: ${err.message}`);
     }
@@ -284,6 +297,7 @@ export function bindViewerUi(viewer, context) {
         setTool('profile');
         break;
       case 'cancel':
+        context.onAction?.('cancel');
         if (tool) setTool(tool);
         $('profile-panel').hidden = true;
         break;
@@ -297,7 +311,8 @@ export function bindViewerUi(viewer, context) {
         $('help').showModal();
         break;
       default:
-        return;
+        // The Read panel's tools (scholar.js): best light, section, lens.
+        if (!context.onAction?.(verb, arg)) return;
     }
     event.preventDefault();
   }

@@ -22,6 +22,8 @@ import { applyPartShading, createPartMaterial, createRelightMaterial, MODE_INDEX
 import { defaultViewState, SHADING_MODES } from './permalink.js';
 import { applyHiddenParts, createPartToggles, hiddenParts } from './parts.js';
 import { availableViews, canonicalView } from './views.js';
+import { applyEnhance, defaultEnhance } from './enhance.js';
+import { TRUST_LAYERS } from './trust.js';
 import { tilesIndexUrl } from './tilesIndex.js';
 
 const PERSPECTIVE_FOV_DEG = 30;
@@ -60,6 +62,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
   const hiddenMaterial = new THREE.MeshBasicMaterial({ visible: false });
   let model = null; // {mesh, assets, box, missing: Set}
   const state = defaultViewState();
+  state.enhance = defaultEnhance();
   const pendingLoads = new Set();
   let frameRequested = false;
   let disposed = false;
@@ -198,7 +201,11 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     applyShading();
     invalidate();
     onChange('shading');
-    const kind = LAZY_KINDS[next.mode];
+    ensureKind(LAZY_KINDS[next.mode]);
+  }
+
+  /** Load a lazily loaded kind of map (modes.js' LAZY_KINDS) once, then apply it. */
+  function ensureKind(kind) {
     if (kind && model && model.assets[kind] === null) {
       const m = model;
       const job = m.assets
@@ -215,6 +222,23 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
         });
       pendingLoads.add(job);
     }
+  }
+
+  /**
+   * Unsharp masking of the normals and of the luminance, and the lens (enhance.js): shader
+   * options shared by every face. `lens`: null, or {mode, x, y, radius} in CSS pixels of the
+   * canvas (x right, y down from its top-left corner).
+   */
+  function setEnhance(next) {
+    state.enhance = applyEnhance(
+      material.uniforms,
+      { ...state.enhance, ...next },
+      { pixelRatio: renderer.getPixelRatio(), canvasHeight: canvas.clientHeight || 1 },
+      MODE_INDEX,
+    );
+    if (state.enhance.lens) ensureKind(LAZY_KINDS[state.enhance.lens.mode]);
+    invalidate();
+    onChange('enhance');
   }
 
   /** Resolves when the maps requested so far have loaded (or failed). */
@@ -247,6 +271,10 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       has = true;
     }
     u.uHasTexture.value = has;
+    // The trust map is bound whenever it is loaded: the lens may show it over another mode.
+    u.uHasTrust.value = Boolean(a?.trust);
+    if (a?.trust) u.uTrustMap.value = a.trust.texture;
+    u.uTrustLayer.value = Math.max(0, TRUST_LAYERS.indexOf(s.trustLayer));
     model?.tiles?.applyShading(s);
     for (const [i, m] of (model?.partMaterials ?? []).entries()) applyPartShading(m, a.faces[i], s, has);
   }
@@ -488,9 +516,22 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
 
   // --- picking and overlay ----------------------------------------------------------------
 
-  /** The model point under a page (CSS pixel) position: {point (mm), uv} or null. */
+  /** The model point under a page (CSS pixel) position: {point (mm), uv, part} or null
+   * (part: the whole tablet's face that was hit, else null). */
   function pick(clientX, clientY) {
-    return model ? pickPoint(canvas, camera, model.mesh, clientX, clientY) : null;
+    const hit = model ? pickPoint(canvas, camera, model.mesh, clientX, clientY) : null;
+    if (hit) hit.part = model.parts && hit.group !== null ? (model.parts.names[hit.group] ?? null) : null;
+    return hit;
+  }
+
+  /** Draw an object over the model (annotation regions); returns a function removing it. */
+  function addOverlay(object) {
+    scene.add(object);
+    invalidate();
+    return () => {
+      scene.remove(object);
+      invalidate();
+    };
   }
 
   /** The light's unit direction in the world frame (a face model's scan frame). */
@@ -509,6 +550,24 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     if (camera.isOrthographicCamera) return (2 * orthoHalfHeight) / ortho.zoom / h;
     const d = persp.position.distanceTo(controls.target);
     return (2 * d * Math.tan((PERSPECTIVE_FOV_DEG * Math.PI) / 360)) / h;
+  }
+
+  /**
+   * Add a three.js object (in model mm) to the scene, drawn with the model (e.g. a section's
+   * outline); returns a function that removes it. The caller owns and disposes the object.
+   */
+  function addOverlay(object) {
+    scene.add(object);
+    invalidate();
+    return () => {
+      scene.remove(object);
+      invalidate();
+    };
+  }
+
+  /** The camera, for tools that project or render regions (read-only use). */
+  function getCamera() {
+    return camera;
   }
 
   function clearOverlay() {
@@ -539,6 +598,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       light: { ...state.light },
       shading: { ...state.shading },
       hidden: hiddenParts(model?.parts),
+      enhance: { ...state.enhance, lens: state.enhance.lens ? { ...state.enhance.lens } : null },
     };
   }
 
@@ -557,6 +617,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     if (next.model !== undefined) state.model = next.model;
     if (next.light) setLight(next.light);
     if (next.shading) setShading(next.shading);
+    if (next.enhance) setEnhance(next.enhance);
     if (next.camera) {
       if (next.camera.projection === 'perspective') {
         camera = persp;
@@ -606,7 +667,22 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     persp.fov = (2 * Math.atan(Math.tan((PERSPECTIVE_FOV_DEG * Math.PI) / 360) * grow) * 180) / Math.PI;
     ortho.updateProjectionMatrix();
     persp.updateProjectionMatrix();
+    const u = material.uniforms;
+    const savedLens = [u.uLensCentre.value.clone(), u.uLensRadius.value];
+    const lens = state.enhance.lens;
+    if (lens) {
+      // The lens where it is on the canvas: canvas NDC → view → the shot's wider frame.
+      const ch = canvas.clientHeight || 1;
+      const nx = (2 * lens.x) / (canvas.clientWidth || 1) - 1;
+      const ny = 1 - (2 * lens.y) / ch;
+      const sx = (nx * canvasAspect) / (grow * aspect);
+      const sy = ny / grow;
+      u.uLensCentre.value.set(((sx + 1) / 2) * w, ((sy + 1) / 2) * h);
+      u.uLensRadius.value = (lens.radius * h) / (ch * grow);
+    }
     render();
+    u.uLensCentre.value.copy(savedLens[0]);
+    u.uLensRadius.value = savedLens[1];
     const blobPromise = new Promise((resolve, reject) =>
       canvas.toBlob((b) => (b ? resolve(b) : reject(new Error('the browser could not encode the PNG'))), 'image/png'),
     );
@@ -662,6 +738,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     lightWorld,
     setState,
     pick,
+    addOverlay,
     project,
     mmPerPixel,
     setMarks,
@@ -672,6 +749,9 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     streaming,
     whenIdle,
     invalidate,
+    setEnhance,
+    addOverlay,
+    getCamera,
     partNames,
     setPartVisible,
     dispose,
@@ -687,6 +767,9 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     },
     get shading() {
       return { ...state.shading };
+    },
+    get enhance() {
+      return { ...state.enhance, lens: state.enhance.lens ? { ...state.enhance.lens } : null };
     },
     get projection() {
       return camera.isOrthographicCamera ? 'orthographic' : 'perspective';

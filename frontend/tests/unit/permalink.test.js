@@ -29,9 +29,16 @@ function sampleState(i) {
       curvatureScale: i % 3,
       exaggeration: 1 + i / 2,
       quality: i % 2 ? 'quality_residual.png' : null,
+      trustLayer: ['sources', 'uncertainty', 'disagreement'][i % 3],
     },
     hidden: [[], ['reverse'], ['top', 'left edge, 2nd scan'], ['obverse & co', 'r=1#x']][i % 4],
     measure: i % 3 ? null : { tool: i % 2 ? 'profile' : 'distance', points: [[i, 2.5, -0.5], [20, 10 + i, 0.25]] },
+    enhance: {
+      normalUnsharp: (i % 4) * 0.5,
+      lumaUnsharp: (i % 3) * 1.25,
+      radiusPx: 4 + i,
+      lens: i % 2 ? { mode: ['trust', 'clay', 'relief'][i % 3], x: 100 + i, y: 50.5, radius: 80 } : null,
+    },
   };
 }
 
@@ -53,6 +60,13 @@ describe('permalink state', () => {
     expect(back.camera.position[2]).toBeCloseTo(-123.456789, 4);
     expect(Math.abs(back.camera.position[0] - 1 / 3)).toBeLessThan(1e-7);
     expect(encodeViewState(back)).toBe(once);
+  });
+
+  it('names a lens it cannot use and keeps the rest', () => {
+    const { state, ignored } = decodeViewState('#mode=clay&un=2&lz=curvature&lx=1&ly=2&lr=30');
+    expect(ignored).toEqual(['lens']);
+    expect(state.enhance).toEqual({ normalUnsharp: 2, lumaUnsharp: 0, radiusPx: 8, lens: null });
+    expect(decodeViewState('#un=99').ignored).toEqual(['un']);
   });
 
   it('gives the defaults for an empty fragment', () => {

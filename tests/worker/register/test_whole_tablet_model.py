@@ -15,7 +15,7 @@ import pytest
 from PIL import Image
 
 from worker.register.io import face_asset_dir, load_model_dir
-from worker.register.run import whole_tablet_model
+from worker.register.run import blend_loaded, whole_tablet_model
 
 from .synthetic import write_gt_model_dirs
 
@@ -23,8 +23,13 @@ FRONTEND = Path(__file__).resolve().parents[3] / "frontend"
 
 
 @pytest.fixture(scope="module")
-def model(tmp_path_factory):
-    paths, truths = write_gt_model_dirs(tmp_path_factory.mktemp("gt"), size=(64, 52))
+def gt(tmp_path_factory):
+    return write_gt_model_dirs(tmp_path_factory.mktemp("gt"), size=(64, 52))
+
+
+@pytest.fixture(scope="module")
+def model(gt):
+    paths, truths = gt
     loaded = [load_model_dir(p) for p in paths]
     return loaded, whole_tablet_model(loaded, truths)
 
@@ -41,16 +46,21 @@ def test_every_face_node_has_its_image_grid_and_albedo(model):
         assert material.pbrMetallicRoughness.baseColorTexture is not None, node.name
 
 
-def test_every_face_keeps_its_full_resolution_normals_and_weights(model):
+def test_every_face_keeps_its_full_resolution_normals_and_weights(model, gt):
     loaded, files = model
-    for cloud, raw in loaded:
+    blended = blend_loaded(loaded, gt[1])
+    for (cloud, raw), (normals, _) in zip(loaded, blended, strict=True):
         name = f"{face_asset_dir(cloud.label)}/normals.png"
         rgba = np.asarray(Image.open(io.BytesIO(files[name])))
         mask = raw["mask"] & np.all(np.isfinite(raw["normals"]), axis=2)
         assert rgba.shape == (*mask.shape, 4)
         decoded = rgba[..., :3] / 127.5 - 1.0
-        err = np.abs(decoded[mask] - raw["normals"][mask]).max()
-        assert err < 1 / 127.5 + 1e-6, (cloud.label, err)  # 8-bit quantisation only
+        # Full resolution: the face's normals blended across the seams, 8-bit quantisation only,
+        err = np.abs(decoded[mask] - normals[mask]).max()
+        assert err < 1 / 127.5 + 1e-6, (cloud.label, err)
+        # and the face's own normals wherever it alone saw the surface (most of it).
+        own = np.all(np.abs(decoded - raw["normals"]) < 1 / 127.5 + 1e-6, axis=2)
+        assert own[mask].mean() > 0.5, cloud.label
         weight = rgba[..., 3]
         assert weight[~mask].max() == 0
         assert weight[mask].max() > 200  # the face's own centre: facing its camera, far in
@@ -69,3 +79,31 @@ def test_khronos_validator_reports_no_error_on_the_whole_tablet(model, tmp_path)
     assert run.stdout, run.stderr
     (report,) = json.loads(run.stdout)
     assert report["issues"]["numErrors"] == 0, report["issues"]["messages"][:5]
+
+
+def test_each_face_carries_its_quality_maps_on_its_own_grid(gt, tmp_path):
+    import shutil
+
+    paths, truths = gt
+    copies, expected = [], {}
+    for k, path in enumerate(paths):
+        d = Path(shutil.copytree(path, tmp_path / path.name))
+        (d / "quality").mkdir()
+        h, w = np.load(d / "height.npy").shape
+        residual = np.random.default_rng(k).random((h, w)).astype(np.float32)
+        np.save(d / "quality" / "photometric_residual.npy", residual)
+        np.save(d / "quality" / "guard.npy", np.full((h, w), k, np.uint8))
+        (d / "quality" / "notes.txt").write_text("not a quality map")  # left out
+        copies.append(d)
+        expected[path.name] = residual
+    loaded = [load_model_dir(p) for p in copies]
+    files = whole_tablet_model(loaded, truths)
+    for k, (cloud, _) in enumerate(loaded):
+        prefix = f"{face_asset_dir(cloud.label)}/quality"
+        assert sorted(n for n in files if n.startswith(prefix)) == [
+            f"{prefix}/guard.npy",
+            f"{prefix}/photometric_residual.npy",
+        ]
+        got = np.load(io.BytesIO(files[f"{prefix}/photometric_residual.npy"]))
+        np.testing.assert_array_equal(got, expected[cloud.face])
+        assert np.load(io.BytesIO(files[f"{prefix}/guard.npy"])).max() == k
