@@ -163,9 +163,12 @@ def measure(page, lib, label: str, model_dir: Path, args) -> dict:
     import json
 
     index = json.loads((model_dir / "tiles" / "index.json").read_text())
+    faces = [  # a whole tablet: its faces' own index.json files
+        json.loads((model_dir / "tiles" / p).read_text()) for p in index.get("faces", {}).values()
+    ] or [index]
     return {
         "label": label,
-        "mpx": index["width_px"] * index["height_px"] / 1e6,
+        "mpx": sum(f["width_px"] * f["height_px"] for f in faces) / 1e6,
         "first_ms": first_ms,
         "zoom_ms": [z["ms"] for z in zooms],
         "zoom_steps": [z["tile"] and z["tile"].get("pixel_step") for z in zooms],
@@ -240,6 +243,7 @@ def main() -> None:
                     start = time.perf_counter()
                     rows.append(measure(page, lib, label, model_dir, args))
                     rows[-1]["wall_s"] = time.perf_counter() - start
+                    print(f"measured {label}: {rows[-1]}", file=sys.stderr, flush=True)
                     context.close()
                 browser.close()
         finally:

@@ -179,7 +179,7 @@ export async function openTiledModel({
     // Replace each tile's glTF material by a relighting material sharing the base's light, mode
     // and camera uniforms, fed with this tile's albedo and its full-resolution maps.
     processTileModel(scene, tile) {
-      const own = { textures: new Set(), originals: new Set() };
+      const own = { textures: new Set(), originals: new Set(), lazy: new Map() };
       scene.updateMatrixWorld(true);
       scene.traverse((obj) => {
         if (!obj.isMesh) return;
@@ -188,6 +188,8 @@ export async function openTiledModel({
         const albedo = gm?.map ?? null;
         if (albedo) albedo.colorSpace = THREE.SRGBColorSpace;
         for (const t of [albedo, maps.normals, maps.curvature, maps.accessibility]) if (t) own.textures.add(t);
+        if (maps.curvature) own.lazy.set(maps.curvature, 'curvature');
+        if (maps.accessibility) own.lazy.set(maps.accessibility, 'accessibility');
         for (const m of Array.isArray(obj.material) ? obj.material : [obj.material]) own.originals.add(m);
         if (!obj.geometry.attributes.normal) obj.geometry.computeVertexNormals();
         // Object-space normals are in the mesh's frame (scan frame); the world is that frame
@@ -211,12 +213,15 @@ export async function openTiledModel({
       perScene.set(scene, own);
     },
     // The renderer counts geometry and the textures it finds on materials; the relighting
-    // material holds its textures in uniforms, so count them here (the LRU's accounting).
+    // material holds its textures in uniforms, so count them here (the LRU's accounting):
+    // the albedo and normals (every mode draws them), and the curvature or accessibility map
+    // only while its mode is on (three.js uploads a texture when first drawn, and
+    // applyShading frees the GPU copy of the other mode's maps).
     calculateBytesUsed(tile, scene) {
       const own = scene && perScene.get(scene);
       if (!own) return 0;
       let bytes = 0;
-      for (const t of own.textures) bytes += textureBytes(t);
+      for (const t of own.textures) if (!own.lazy.has(t) || own.lazy.get(t) === shading?.mode) bytes += textureBytes(t);
       return bytes;
     },
   };
@@ -277,13 +282,21 @@ export async function openTiledModel({
   let cameraInUse = null;
   let disposed = false;
 
+  /** The LRU's bytes of every loaded tile again (0.5.3's recalculateBytesUsed() iterates its
+   * cache Map's values, not its tiles, and so changes nothing). */
+  function recount() {
+    for (const tile of tiles.lruCache.itemSet.keys()) {
+      if (tile.engineData?.scene) tiles.lruCache.setMemoryUsage(tile, tiles.getBytesUsed(tile));
+    }
+  }
+
   function curvatureLayers(texture) {
     // One curvature map per tile; the coarser scales are its mip levels (as assets.js does for
     // a single map): smoothing over 4 and 16 pixels of this tile's level.
     return [
       { texture, lod: 0, label: 'curvature' },
-      { texture, lod: 2, label: 'curvature, smoothed over 4 px' },
-      { texture, lod: 4, label: 'curvature, smoothed over 16 px' },
+      { texture, lod: 2, label: 'curvature, smoothed over 4 texels' },
+      { texture, lod: 4, label: 'curvature, smoothed over 16 texels' },
     ];
   }
 
@@ -291,6 +304,7 @@ export async function openTiledModel({
     index,
     /** 'face' (one scan's image grid) or 'tablet' (a whole tablet's faces, external tilesets). */
     kind,
+    blank: baseMaterial.userData.blank,
     tiles,
     /** The Object3D to add to the scene. */
     object: tiles.group,
@@ -318,8 +332,18 @@ export async function openTiledModel({
     },
     /** Apply a shading state ({mode, curvatureScale}) to every tile, now and on load. */
     applyShading(s) {
+      const before = shading?.mode;
       shading = { ...s };
-      for (const m of materials) applyPartShading(m, m.userData.face, shading, false);
+      for (const m of materials) {
+        applyPartShading(m, m.userData.face, shading, false);
+        if (before !== shading.mode) {
+          // Leaving a mode: free the GPU copies of its maps (the images stay, for coming back).
+          const f = m.userData.face;
+          if (before === 'curvature' && f.curvature[0]) f.curvature[0].texture.dispose();
+          if (before === 'accessibility' && f.accessibility) f.accessibility.dispose();
+        }
+      }
+      if (before !== shading.mode) recount();
     },
     setBudgetMb(mb) {
       if (!(mb > 0)) throw new RangeError(`budget must be > 0 MB, got ${mb}`);
@@ -413,12 +437,21 @@ function errorPerTexel(tiles, pixelSizeUm) {
  */
 export function tiledAssets(tiled) {
   const tile = 'tiles (per tile)';
+  // The curvature scales the page offers (each tile's map and its mip levels, as
+  // curvatureLayers); the textures are the tiles' own, the base material gets the blank.
+  const blank = tiled.blank;
   return {
     names: { curvature: [tile], accessibility: tile, quality: [], height: null },
-    normals: true,
-    albedo: true,
-    curvature: [],
-    accessibility: true,
+    // Textures, never flags: the viewer may put these in the base material's uniforms (shared
+    // by the tiles' materials when a tile is made); each tile then gets its own maps.
+    normals: blank,
+    albedo: blank,
+    curvature: [
+      { name: 'curvature', texture: blank, lod: 0, label: 'curvature (each tile)' },
+      { name: 'curvature', texture: blank, lod: 2, label: 'curvature, smoothed over 4 texels' },
+      { name: 'curvature', texture: blank, lod: 4, label: 'curvature, smoothed over 16 texels' },
+    ],
+    accessibility: blank,
     quality: [],
     faces: [],
     parts: [],

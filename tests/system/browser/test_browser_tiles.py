@@ -192,6 +192,25 @@ def test_a_tiled_model_streams_relights_and_stays_in_budget(tiled_page, tiled, t
     assert r_full > 0.95, (r_full, r_coarse)
     assert r_full > r_coarse + 0.01, (r_full, r_coarse)
 
+    # Every shading mode draws the tiles from their own maps: each view has structure
+    # (the wedges) and differs from the others; the per-scan quality maps are not streamed.
+    shots, gpu = {}, {}
+    for mode in ("natural", "curvature", "accessibility", "relief", "depth", "normals"):
+        page.evaluate("m => window.hammurabi.viewer.setShading({ mode: m })", mode)
+        shots[mode] = tools.render_pixels(page)
+        gpu[mode] = streaming(page)["bytesUsed"]
+        assert shots[mode].std() > 0.02, mode
+    # the curvature and accessibility maps are on the GPU (and counted) only in their modes
+    assert gpu["curvature"] > gpu["natural"] and gpu["accessibility"] > gpu["natural"], gpu
+    assert gpu["relief"] == gpu["natural"], gpu
+    names = list(shots)
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            assert np.abs(shots[a] - shots[b]).mean() > 0.01, (a, b)
+    page.evaluate("() => window.hammurabi.viewer.setShading({ mode: 'quality' })")
+    assert "quality" in page.locator("#notice").inner_text()
+    page.evaluate("() => window.hammurabi.viewer.setShading({ mode: 'clay' })")
+
     if os.environ.get("HAMMURABI_SAVE_SCREENSHOTS"):
         page.locator("#viewer").screenshot(
             path=str(Path(os.environ["HAMMURABI_SAVE_SCREENSHOTS"]) / "viewer-tiles-zoom.png")
