@@ -25,6 +25,7 @@ from worker.measure.checks import check_lights, check_saturation, check_surface_
 from worker.measure.result import bundle_errors_as_reconstruction_errors
 from worker.model_dir import ModelArrays, albedo_png_bytes, write_model_dir_timed
 from worker.recon.arrays import fast_median
+from worker.recon.band_wiener import BAND_SCALES_PX, band_wiener_correct, fringe_noise_colour
 from worker.recon.color import linear_to_srgb8
 from worker.recon.fusion import (
     PIXEL_AREA_VAR_PX2,
@@ -366,6 +367,11 @@ def _surface(
         height_sigma_um=sig_f,
         workers=min(2, os.cpu_count() or 1),
     )
+    # Scale by scale, the fringe heights correct what the normals' bias left in the fused
+    # surface, where they disagree beyond the fringes' noise measured at that scale.
+    h, band_entry = _band_wiener(
+        meas, h, mask, crease=crease, fringe_blur=fringe_blur, camera_psf_px=blur_sigma_px
+    )
     refinements = {
         "fringe_blur": {"sigma_px": fringe_blur},
         "tilt_bias": {
@@ -373,6 +379,7 @@ def _surface(
             "max_mrad": float(1000 * tilt_bias[mask].max()) if mask.any() else 0.0,
         },
         "normal_bias": _normal_bias_entry(meas.normals, normals, mask),
+        "band_wiener": band_entry,
     }
     # The heights are those of the surface averaged over each pixel and the camera's PSF;
     # the output is the point sample at the pixel's centre (SCAN_BUNDLE.md).
@@ -386,6 +393,46 @@ def _surface(
     }
     h = sharp
     return h, lambda: _unit_normals(meas.normals, h, mask, s), "default", refinements
+
+
+def _band_wiener(
+    meas: Measurements,
+    h: np.ndarray,
+    mask: np.ndarray,
+    *,
+    crease: np.ndarray,
+    fringe_blur: float,
+    camera_psf_px: float,
+) -> tuple[np.ndarray, dict]:
+    """`band_wiener.band_wiener_correct` with the fringe noise's colour measured on the
+    azimuths' differences; unchanged (and reported as not run) without per-azimuth heights
+    or the fringes' phase noise. Returns (heights, report entry: per band its scales, the
+    noise's colour κ, the mean gain and the share of tablet pixels where it acted)."""
+    if meas.fringe_azimuth_heights_um is None or meas.fringe_sigma_um is None:
+        return h, {"ran": False}
+    colour = fringe_noise_colour(meas.fringe_azimuth_heights_um, meas.fringe_azimuth_sigma_um, mask)
+    # The fringe heights' blur relative to the surface's point samples: theirs relative to
+    # the normals, plus what blurs both (the camera's PSF and the pixel's own area).
+    resolution = float(np.hypot(fringe_blur, point_sample_sigma_px(camera_psf_px)))
+    band = band_wiener_correct(
+        h,
+        meas.fringe_height_um,
+        mask,
+        noise_sigma_um=meas.fringe_sigma_um,
+        crease_sigma_um=crease,
+        colour=colour,
+        blur_px=fringe_blur,
+        resolution_px=resolution,
+    )
+    entry = {
+        "ran": True,
+        "resolution_px": round(resolution, 3),
+        "scales_px": list(BAND_SCALES_PX),
+        "noise_colour": [round(float(k), 3) for k in colour],
+        "mean_gain": [round(g, 4) for g in band.mean_gain],
+        "acting_share": [round(a, 4) for a in band.acting_share],
+    }
+    return band.height_um, entry
 
 
 def _normal_bias_entry(measured: np.ndarray, corrected: np.ndarray, mask: np.ndarray) -> dict:

@@ -127,7 +127,7 @@ def test_the_manifest_psf_is_used_and_reported(tmp_path):
     assert report["refinements"]["sharpen"]["sigma_px"] == pytest.approx(np.sqrt(0.25 + 1 / 12))
     assert report["refinements"]["sharpen"]["pixels"] > 0
     # Every refinement says where it acted; the guard's map is written.
-    for step in ("normal_bias", "walls", "guard"):
+    for step in ("normal_bias", "band_wiener", "walls", "guard"):
         assert step in report["refinements"], step
     guard = np.load(tmp_path / "m" / "quality" / "guard.npy")
     entry = report["refinements"]["guard"]

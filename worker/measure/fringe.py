@@ -183,7 +183,11 @@ def _measure_fringes(bundle, fringe, meas, rho_ref, progress, workers, side, on_
         progress("fringe", 0.02 + 0.5 * (i + 1) / total)
     check_reference_periods(periods_seen)
     maxima = side.submit(_maxima, mods, ambient if meas.albedo is None else None)
-    comb = consensus_azimuths(np.stack(heights), np.stack(sigmas), workers=workers)
+    meas.fringe_azimuth_heights_um = np.stack(heights)
+    meas.fringe_azimuth_sigma_um = np.stack(sigmas)
+    comb = consensus_azimuths(
+        meas.fringe_azimuth_heights_um, meas.fringe_azimuth_sigma_um, workers=workers
+    )
     meas.fringe_height_um = comb.height_um
     meas.fringe_spread_um = comb.spread_um
     meas.fringe_sigma_um = comb.sigma_um

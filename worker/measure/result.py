@@ -52,6 +52,10 @@ class Measurements:
     fringe_height_um: np.ndarray | None = None
     fringe_spread_um: np.ndarray | None = None
     fringe_sigma_um: np.ndarray | None = None  # predicted σ of fringe_height_um (phase noise)
+    # Each azimuth's own heights and σ (A, H, W), NaN where it has none: their differences
+    # measure the fringe noise's colour (`recon.band_wiener.fringe_noise_colour`).
+    fringe_azimuth_heights_um: np.ndarray | None = None
+    fringe_azimuth_sigma_um: np.ndarray | None = None
     azimuths_used: np.ndarray | None = None
     modulation: np.ndarray | None = None
     # Median B/A over the central half of the reference target, per (azimuth°, polar°, period
