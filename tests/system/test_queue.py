@@ -309,7 +309,13 @@ def test_a_job_completed_during_an_outage_is_sent_later_and_survives_a_killed_po
         assert [m["id"] for m in _models_of_job(library, done["scan"]["id"], job_id)] == [
             row["model_id"]
         ]
-        assert not list(work_root.glob(f"hammurabi-job-{job_id}-*"))
+        # The worker removes its attempt's folder after it stored the model (the job is
+        # "succeeded" a moment before): wait for that, or fail if it stays.
+        _wait(
+            lambda: not list(work_root.glob(f"hammurabi-job-{job_id}-*")),
+            timeout_s=15,
+            what="the finished attempt's work folder to be removed",
+        )
         print(
             f"\nsent {sent_after_s:.1f} s after the broker returned; "
             f"redelivery took over {takeover_s:.1f} s after the kill"
