@@ -10,6 +10,10 @@ For each seed: simulate a scan (worker.simulate; kept in --work to be reused), t
 2. the whole pipeline (`reconstruct_bundle`, default fusion) in a child process: time per
    stage, total, and the child's peak resident memory (getrusage ru_maxrss);
    both `--repeat` times, alternating which runs first; the table gives medians;
+   unless --no-cli, also issue 15's own figure: the CLI `python -m worker.reconstruct
+   BUNDLE OUT --quiet` from process start to exit (imports and the model directory's
+   writing included: wall, CPU and peak RSS of that process by os.wait4) against a fresh
+   process that imports the bundle reader and decodes every image (the same decode);
 3. accuracy (worker.recon.evaluate) and fusion time (wall and CPU) of the four surfaces:
    fringe heights alone (5×5 median), normals integrated alone, the paper's fusion, the
    default fusion (sharpened by the camera blur measured on the bundle, then its cliff
@@ -35,7 +39,9 @@ sys.path.insert(0, str(_HERE.parent))
 import argparse  # noqa: E402
 import json  # noqa: E402
 import multiprocessing as mp  # noqa: E402
+import os  # noqa: E402
 import resource  # noqa: E402
+import subprocess  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 
@@ -106,6 +112,68 @@ def _in_child(target, *args):
 
 def pipeline_run(bundle_path: Path, out_dir: Path) -> dict:
     return _in_child(_child, str(bundle_path), str(out_dir))
+
+
+# The decode floor as a process of its own, start to exit: the same decode as `_decode_child`
+# (every non-dark image to radiance, 8 at a time), after importing only the bundle reader.
+_DECODE_SCRIPT = """
+import sys
+from worker.bundle import open_bundle
+with open_bundle(sys.argv[1]) as b:
+    frames = [f for f in b.frames if f.kind != "dark"]
+    for i in range(0, len(frames), 8):
+        b.radiance_many(frames[i : i + 8])
+"""
+
+
+def _process_run(args: list[str]) -> dict:
+    """Wall, CPU (user + system) seconds and peak RSS (MiB) of one child process, start to
+    exit (os.wait4: that child's own figures, not the sum over every child so far)."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(
+        args, cwd=_HERE.parent, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    )
+    err = proc.stderr.read()
+    _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"{args[1:3]} exited {proc.returncode}: {err.decode()[-2000:]}")
+    return {
+        "wall": wall,
+        "cpu": usage.ru_utime + usage.ru_stime,
+        "maxrss_mib": usage.ru_maxrss / 1024,
+    }
+
+
+def cli_speed(bundle_path: Path, repeat: int) -> tuple[list[dict], list[dict]]:
+    """`repeat` runs each of the decode process and of `python -m worker.reconstruct`,
+    alternating which goes first (as `speed`)."""
+    decodes, runs = [], []
+    for i in range(repeat):
+        with tempfile.TemporaryDirectory(prefix="bench-model-") as tmp:
+            cli = [sys.executable, "-m", "worker.reconstruct", str(bundle_path), tmp + "/m"]
+            dec = [sys.executable, "-c", _DECODE_SCRIPT, str(bundle_path)]
+            if i % 2 == 0:
+                decodes.append(_process_run(dec))
+            runs.append(_process_run([*cli, "--quiet"]))
+            if i % 2 == 1:
+                decodes.append(_process_run(dec))
+    return decodes, runs
+
+
+def _print_cli_speed(decodes: list[dict], runs: list[dict]) -> None:
+    med = np.median
+    wall, dec = med([r["wall"] for r in runs]), med([d["wall"] for d in decodes])
+    cpu, dec_cpu = med([r["cpu"] for r in runs]), med([d["cpu"] for d in decodes])
+    rss = max(r["maxrss_mib"] for r in runs)
+    each = ", ".join(f"{r['wall']:.2f}/{d['wall']:.2f}" for r, d in zip(runs, decodes, strict=True))
+    print(
+        f"\nCLI, process start to exit (`python -m worker.reconstruct … --quiet` against a "
+        f"process that decodes every image): {wall:.2f} s / {dec:.2f} s = {wall / dec:.2f} "
+        f"(wall, medians); CPU seconds {cpu:.1f} / {dec_cpu:.1f} = {cpu / dec_cpu:.2f}; "
+        f"peak RSS {rss:.0f} MiB\nruns (CLI / decode s): {each}"
+    )
 
 
 def speed(bundle_path: Path, repeat: int) -> tuple[list[tuple[float, float, int]], list[dict]]:
@@ -238,6 +306,9 @@ def main(argv=None) -> int:
     p.add_argument("--no-speed", action="store_true", help="accuracy table only")
     p.add_argument("--no-accuracy", action="store_true", help="speed table only")
     p.add_argument(
+        "--no-cli", action="store_true", help="no CLI runs (process start to exit) in the speed"
+    )
+    p.add_argument(
         "--repeat", type=int, default=3, help="decode and pipeline runs for the speed table"
     )
     args = p.parse_args(argv)
@@ -251,6 +322,8 @@ def main(argv=None) -> int:
         sim = simulate(work, seed=seed, preset=args.preset, noise=args.noise, size=size)
         if not args.no_speed:
             _print_speed(seed, *speed(sim / "bundle", args.repeat))
+            if not args.no_cli:
+                _print_cli_speed(*cli_speed(sim / "bundle", args.repeat))
         if args.no_accuracy:
             continue
         rows, blur = accuracy(sim)

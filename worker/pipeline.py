@@ -181,9 +181,16 @@ def _model(
             timings["fusion"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         blur = refinements.get("fringe_blur", {}).get("sigma_px", 0.0)
+        crease = refinements.get("fringe_blur", {}).pop("_crease", None)
         decided = refinements.get("walls", {}).pop("_decided", None)
         height, normals, guard_flag, refinements["guard"] = _guard(
-            meas, height, normals, mask, fringe_blur_px=blur, cliff_decided=decided
+            meas,
+            height,
+            normals,
+            mask,
+            fringe_blur_px=blur,
+            cliff_decided=decided,
+            crease_um=crease,
         )
         timings["guard"] = time.perf_counter() - t0
         on_mask = prepared.result()  # after the colour stage (re-raising its errors)
@@ -373,7 +380,9 @@ def _surface(
         meas, h, mask, crease=crease, fringe_blur=fringe_blur, camera_psf_px=blur_sigma_px
     )
     refinements = {
-        "fringe_blur": {"sigma_px": fringe_blur},
+        # "_crease" (popped by the pipeline before the report is written): the same map the
+        # guard needs (the measured normals and this blur), not computed twice.
+        "fringe_blur": {"sigma_px": fringe_blur, "_crease": crease},
         "tilt_bias": {
             "pixels": int(np.count_nonzero(mask & (tilt_bias > 0))),
             "max_mrad": float(1000 * tilt_bias[mask].max()) if mask.any() else 0.0,
@@ -513,6 +522,7 @@ def _guard(
     *,
     fringe_blur_px: float = 0.0,
     cliff_decided: np.ndarray | None = None,
+    crease_um: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
     """The last step of every surface with fringe heights (`height.guard_heights`): no
     height further than max(5σ, 50 µm) from the valid fringe heights, none outside its
@@ -529,14 +539,19 @@ def _guard(
     (`refine_walls_checked`); the other pixels next to a jump without a valid fringe
     height (`walls.unmeasured_jumps`) are left NaN at a cliff (flag `GUARD_CLIFF`: a point
     sample on the wrong side, or between the two, is a spike of the cliff's height); on
-    steep ground their normals explain the jump and they are kept (counted)."""
+    steep ground their normals explain the jump and they are kept (counted).
+
+    crease_um: `quality.crease_sigma_um` of the measured normals with `fringe_blur_px`,
+    when the caller has it already (the default fusion's); computed here otherwise."""
     if meas.fringe_height_um is None or not np.isfinite(meas.fringe_height_um[mask]).any():
         return height, normals, None, {"ran": False}
     sigma = meas.fringe_sigma_um
     if meas.normals is not None and sigma is not None:
-        crease = crease_sigma_um(
-            meas.normals, pixel_size_um=meas.pixel_size_um, blur_px=fringe_blur_px
-        )
+        crease = crease_um
+        if crease is None:
+            crease = crease_sigma_um(
+                meas.normals, pixel_size_um=meas.pixel_size_um, blur_px=fringe_blur_px
+            )
         sigma = np.hypot(sigma, crease).astype(np.float32)
     valid = valid_fringe(
         meas.fringe_height_um,
