@@ -11,6 +11,9 @@ steep wedge walls were left out of the scans (points tilted > 70°), so trimming
 
 from __future__ import annotations
 
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
+
 import numpy as np
 import trimesh
 from PIL import Image
@@ -22,7 +25,14 @@ from worker.register.blend import face_weight
 from worker.register.o3d import o3d, point_cloud, transform_points
 from worker.register.pointcloud import ScanCloud
 
-__all__ = ["face_normal_map", "grid_mesh", "merged_surface", "scene_glb"]
+__all__ = [
+    "face_normal_map",
+    "grid_mesh",
+    "merged_surface",
+    "poisson_arrays",
+    "poisson_off_the_gil",
+    "scene_glb",
+]
 
 
 def merged_surface(
@@ -42,6 +52,18 @@ def merged_surface(
     )
     nrm = np.concatenate([s.normals @ t[:3, :3].T for s, t in zip(scans, transforms, strict=True)])
     col = np.concatenate([s.colours for s in scans])
+    vertices, triangles, normals, colours = poisson_off_the_gil(pts, nrm, col, depth, trim_quantile)
+    rgba = np.concatenate([colours, np.full((len(colours), 1), 255, np.uint8)], axis=1)
+    return trimesh.Trimesh(
+        vertices, triangles, vertex_normals=normals, vertex_colors=rgba, process=False
+    )
+
+
+def poisson_arrays(
+    pts: np.ndarray, nrm: np.ndarray, col: np.ndarray, depth: int, trim_quantile: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Screened Poisson surface of oriented, coloured points: (vertices (V, 3) mm, triangles
+    (T, 3), vertex normals (V, 3), colours (V, 3) uint8), low-density vertices trimmed."""
     pcd = point_cloud(pts, nrm, col)
     mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
         pcd, depth=depth, scale=1.1, linear_fit=False
@@ -51,14 +73,27 @@ def merged_surface(
     mesh.remove_unreferenced_vertices()
     mesh.compute_vertex_normals()
     colours = np.clip(np.rint(np.asarray(mesh.vertex_colors) * 255), 0, 255).astype(np.uint8)
-    rgba = np.concatenate([colours, np.full((len(colours), 1), 255, np.uint8)], axis=1)
-    return trimesh.Trimesh(
+    return (
         np.asarray(mesh.vertices),
         np.asarray(mesh.triangles),
-        vertex_normals=np.asarray(mesh.vertex_normals),
-        vertex_colors=rgba,
-        process=False,
+        np.asarray(mesh.vertex_normals),
+        colours,
     )
+
+
+def poisson_off_the_gil(
+    pts: np.ndarray, nrm: np.ndarray, col: np.ndarray, depth: int, trim_quantile: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`poisson_arrays` in a spawned child process. Open3D's Poisson holds the GIL for its
+    whole run (its pybind11 binding does not release it): measured, 101 s without a single
+    switch on a loaded 2-core machine, so the job's heartbeat thread (worker/tasks.py) could
+    not beat and the job looked stale after 15 s. A daemonic process (which may not have
+    children) runs it in place."""
+    if multiprocessing.current_process().daemon:
+        return poisson_arrays(pts, nrm, col, depth, trim_quantile)
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
+        return pool.submit(poisson_arrays, pts, nrm, col, depth, trim_quantile).result()
 
 
 def grid_mesh(
