@@ -197,7 +197,6 @@ def test_the_streamed_tablet_draws_the_seams_as_the_single_mesh_does(page, lib, 
     assert page.evaluate("() => window.hammurabi.viewer.streaming() !== null")
     streamed = _top_edge_view(page, tools, "clay")
     _save("whole-tablet-streamed-top-edge.png", streamed)
-    _save("whole-tablet-mesh-top-edge.png", mesh)
     on = _on_model(mesh) & _on_model(streamed)
     assert on.mean() > 0.2, on.mean()
     # The same picture as the single mesh, to the tiles' own rounding (the skirts at the
@@ -208,7 +207,6 @@ def test_the_streamed_tablet_draws_the_seams_as_the_single_mesh_does(page, lib, 
     streamed_n = _top_edge_view(page, tools, "natural")
     _show(page, lib, "mesh")
     mesh_n = _top_edge_view(page, tools, "natural")
-    _save("whole-tablet-streamed-top-edge-natural.png", streamed_n)
     assert np.abs(streamed_n - mesh_n).mean(axis=-1)[on].mean() < 0.03
 
 
