@@ -11,9 +11,6 @@ steep wedge walls were left out of the scans (points tilted > 70°), so trimming
 
 from __future__ import annotations
 
-import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
-
 import numpy as np
 import trimesh
 from PIL import Image
@@ -84,16 +81,11 @@ def poisson_arrays(
 def poisson_off_the_gil(
     pts: np.ndarray, nrm: np.ndarray, col: np.ndarray, depth: int, trim_quantile: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """`poisson_arrays` in a spawned child process. Open3D's Poisson holds the GIL for its
-    whole run (its pybind11 binding does not release it): measured, 101 s without a single
-    switch on a loaded 2-core machine, so the job's heartbeat thread (worker/tasks.py) could
-    not beat and the job looked stale after 15 s. A daemonic process (which may not have
-    children) runs it in place."""
-    if multiprocessing.current_process().daemon:
-        return poisson_arrays(pts, nrm, col, depth, trim_quantile)
-    ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
-        return pool.submit(poisson_arrays, pts, nrm, col, depth, trim_quantile).result()
+    """`poisson_arrays` in a child process (`worker.register.poisson`): Open3D holds the GIL
+    for the whole reconstruction, which stopped the job's heartbeat thread."""
+    from worker.register.poisson import poisson_in_child
+
+    return poisson_in_child(pts, nrm, col, depth, trim_quantile)
 
 
 def grid_mesh(

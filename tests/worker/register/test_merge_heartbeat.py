@@ -1,6 +1,6 @@
 """The registration's Poisson surface leaves the GIL to the job's heartbeat thread
 (worker/tasks.py `_Beat`): Open3D holds the GIL for the whole reconstruction, so it runs in a
-child process (worker.register.merge.poisson_off_the_gil); a thread that wakes every 50 ms
+child process (worker.register.poisson); a thread that wakes every 50 ms
 keeps waking while it runs, as the heartbeat must (a stale heartbeat after 15 s made the
 sweeper take a running registration for dead)."""
 
