@@ -22,7 +22,14 @@ from worker.register.blend import face_weight
 from worker.register.o3d import o3d, point_cloud, transform_points
 from worker.register.pointcloud import ScanCloud
 
-__all__ = ["face_normal_map", "grid_mesh", "merged_surface", "scene_glb"]
+__all__ = [
+    "face_normal_map",
+    "grid_mesh",
+    "merged_surface",
+    "poisson_arrays",
+    "poisson_off_the_gil",
+    "scene_glb",
+]
 
 
 def merged_surface(
@@ -42,6 +49,18 @@ def merged_surface(
     )
     nrm = np.concatenate([s.normals @ t[:3, :3].T for s, t in zip(scans, transforms, strict=True)])
     col = np.concatenate([s.colours for s in scans])
+    vertices, triangles, normals, colours = poisson_off_the_gil(pts, nrm, col, depth, trim_quantile)
+    rgba = np.concatenate([colours, np.full((len(colours), 1), 255, np.uint8)], axis=1)
+    return trimesh.Trimesh(
+        vertices, triangles, vertex_normals=normals, vertex_colors=rgba, process=False
+    )
+
+
+def poisson_arrays(
+    pts: np.ndarray, nrm: np.ndarray, col: np.ndarray, depth: int, trim_quantile: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Screened Poisson surface of oriented, coloured points: (vertices (V, 3) mm, triangles
+    (T, 3), vertex normals (V, 3), colours (V, 3) uint8), low-density vertices trimmed."""
     pcd = point_cloud(pts, nrm, col)
     mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
         pcd, depth=depth, scale=1.1, linear_fit=False
@@ -51,14 +70,22 @@ def merged_surface(
     mesh.remove_unreferenced_vertices()
     mesh.compute_vertex_normals()
     colours = np.clip(np.rint(np.asarray(mesh.vertex_colors) * 255), 0, 255).astype(np.uint8)
-    rgba = np.concatenate([colours, np.full((len(colours), 1), 255, np.uint8)], axis=1)
-    return trimesh.Trimesh(
+    return (
         np.asarray(mesh.vertices),
         np.asarray(mesh.triangles),
-        vertex_normals=np.asarray(mesh.vertex_normals),
-        vertex_colors=rgba,
-        process=False,
+        np.asarray(mesh.vertex_normals),
+        colours,
     )
+
+
+def poisson_off_the_gil(
+    pts: np.ndarray, nrm: np.ndarray, col: np.ndarray, depth: int, trim_quantile: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`poisson_arrays` in a child process (`worker.register.poisson`): Open3D holds the GIL
+    for the whole reconstruction, which stopped the job's heartbeat thread."""
+    from worker.register.poisson import poisson_in_child
+
+    return poisson_in_child(pts, nrm, col, depth, trim_quantile)
 
 
 def grid_mesh(

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import time
 from collections.abc import Callable
@@ -35,7 +36,10 @@ __all__ = [
     "build_tiles",
     "fill_tiles",
     "glb_root_matrix",
+    "read_gloss",
 ]
+
+log = logging.getLogger("worker.tiles")
 
 TEXTURE_PX = 512  # texels per side of a 3D tile's textures
 GRID_CELLS = 128  # mesh cells per side of a 3D tile
@@ -57,12 +61,29 @@ def _read_grey_or_rgb(path: Path, *, rgb: bool) -> np.ndarray:
 
 
 def _encode(image: np.ndarray, ext: str, name: str) -> bytes:
-    img = image[..., ::-1] if image.ndim == 3 else image
+    # OpenCV writes BGR(A): RGB → BGR, RGBA → BGRA.
+    img = image if image.ndim == 2 else image[..., [2, 1, 0, 3][: image.shape[2]]]
     params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if ext == ".jpg" else []
     ok, buf = cv2.imencode(ext, np.ascontiguousarray(img), params)
     if not ok:
         raise OSError(f"{name}: {ext} encoding failed")
     return buf.tobytes()
+
+
+def read_gloss(model_dir: Path) -> tuple[np.ndarray, dict] | None:
+    """The model's measured gloss (worker/photos.py): (gloss.png's red channel (H, W) uint8,
+    {"strength_scale", "exponent"}), or None when the scan has none or its fit stood down
+    (gloss.json without both > 0, as the viewer's assets.js decides) or a file is unreadable."""
+    try:
+        info = json.loads((model_dir / "gloss.json").read_text(encoding="utf-8"))
+        scale, exponent = float(info["strength_scale"]), float(info["exponent"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    img = cv2.imread(str(model_dir / "gloss.png"), cv2.IMREAD_COLOR)
+    if img is None or not (scale > 0 and exponent > 0):
+        return None
+    red = np.ascontiguousarray(img[..., 2])  # OpenCV reads BGR
+    return red, {"strength_scale": scale, "exponent": exponent}
 
 
 def height_png_mapping(height_um: np.ndarray) -> tuple[float, float]:
@@ -166,14 +187,18 @@ def fill_tiles(
     root_matrix: np.ndarray | None = None,
     albedo_path: Path | None = None,
     normals_path: Path | None = None,
+    gloss: tuple[np.ndarray, dict] | None = None,
     progress: Progress = lambda stage, fraction: None,
 ) -> dict:
     """Write the content of `tiles/` into the empty folder `tmp`; returns index.json's dict.
 
     height_um (H, W) float (NaN = no data; may be a memory map); albedo (H, W, 3) sRGB uint8;
-    normals_rgb8 (H, W, 3) = (n + 1)/2 · 255; curvature8, accessibility8 (H, W) uint8 as
-    worker.assets writes them. albedo_path / normals_path: the same images as files, which
-    libvips streams instead of copying the arrays.
+    normals_rgb8 (H, W, 3) = (n + 1)/2 · 255, or (H, W, 4) with a whole tablet's face weight
+    in alpha (worker.register.merge.face_normal_map: the 3D tiles keep it, the IIIF layer
+    shows RGB); curvature8, accessibility8 (H, W) uint8 as worker.assets writes them.
+    albedo_path / normals_path: the same images as files (RGB), which libvips streams instead
+    of copying the arrays. gloss: (gloss.png's pixels (H, W[, C]) uint8, {"strength_scale",
+    "exponent"} of gloss.json), the scan's measured gloss (worker/photos.py), or None.
     """
     t_start = time.perf_counter()
     H, W = height_um.shape
@@ -185,6 +210,10 @@ def fill_tiles(
     ):
         if arr.shape[:2] != (H, W):
             raise TileError(f"{name}: {arr.shape[:2]} differs from height's {(H, W)}")
+    if gloss is not None and gloss[0].shape[:2] != (H, W):
+        # An extra, as in the model: the tiles are made without it rather than not at all.
+        log.warning("gloss: %s differs from height's %s; tiled without", gloss[0].shape, (H, W))
+        gloss = None
     rows = max(1, (1 << 22) // W)
     if not any(np.isfinite(height_um[r : r + rows]).any() for r in range(0, H, rows)):
         raise TileError("height: no finite value")
@@ -203,7 +232,9 @@ def fill_tiles(
     offset_um, scale_um = height_png_mapping(np.asarray(height_um))
     (tmp / "iiif").mkdir()
     n_iiif = save_layer(albedo_path or albedo, tmp / "iiif" / "albedo", suffix=".jpg[Q=90]")
-    n_iiif += save_layer(normals_path or normals_rgb8, tmp / "iiif" / "normals", suffix=".png")
+    n_iiif += save_layer(
+        normals_path or normals_rgb8[..., :3], tmp / "iiif" / "normals", suffix=".png"
+    )
     n_iiif += save_layer(
         height_png16(height_um, offset_um, scale_um), tmp / "iiif" / "height", suffix=".png"
     )
@@ -220,6 +251,11 @@ def fill_tiles(
         "curvature": curvature8,
         "accessibility": accessibility8,
     }
+    material_extras = None
+    if gloss is not None:
+        # The red channel: round(255 · k_s / strength_scale) (worker/photos.py).
+        images["gloss"] = gloss[0] if gloss[0].ndim == 2 else gloss[0][..., 0]
+        material_extras = {"dh_gloss": gloss[1]}
     nodes: dict[tuple[int, int, int], dict] = {}
     total_tiles = sum(
         len(quadtree.tiles_of_level(lv, levels, W, H, TEXTURE_PX)) for lv in range(levels)
@@ -266,8 +302,13 @@ def fill_tiles(
                         "image/png",
                     ),
                 }
+                if "gloss" in crop:
+                    textures["gloss"] = (_encode(crop["gloss"], ".png", "gloss"), "image/png")
                 uri = f"{level}/{tile.x}_{tile.y}.glb"
-                writer.put(uri, tile_glb_bytes(mesh, textures, extras=node["extras"]))
+                glb = tile_glb_bytes(
+                    mesh, textures, extras=node["extras"], material_extras=material_extras
+                )
+                writer.put(uri, glb)
                 node["content"] = {"uri": uri}
                 lo, hi = mesh.min_mm.astype(float), mesh.max_mm.astype(float)
             kids = [
@@ -392,6 +433,7 @@ def build_tiles(model_dir: str | os.PathLike, *, progress: Progress | None = Non
             root_matrix=glb_root_matrix(model_dir / "model.glb"),
             albedo_path=model_dir / "albedo.png",
             normals_path=model_dir / "normals.png",
+            gloss=read_gloss(model_dir),
             progress=progress,
         )
 

@@ -14,7 +14,8 @@ scan-frame coordinates themselves.
 
 Material: baseColorTexture = the tile's albedo; the viewer's other maps of the same texel
 rectangle are textures named in material.extras.dh_maps (object-space normals, lossless
-PNG; curvature; accessibility).
+PNG, RGBA on a whole tablet's faces with the face's weight in alpha; curvature;
+accessibility; gloss where the scan measured one, its scale in material.extras.dh_gloss).
 """
 
 from __future__ import annotations
@@ -27,7 +28,10 @@ import numpy as np
 
 from worker.tiles.tile_mesh import TileMesh
 
-__all__ = ["Y_UP_TO_Z_UP_INVERSE", "glb_container", "tile_glb_bytes"]
+__all__ = ["OPTIONAL_MAPS", "Y_UP_TO_Z_UP_INVERSE", "glb_container", "tile_glb_bytes"]
+
+# Maps a tile carries only when the model has them (worker/photos.py's gloss.png).
+OPTIONAL_MAPS = ("gloss",)
 
 # glTF 2.0 constants (§5.23 sampler, §5.11 bufferView target, §3.6.2.2 componentType).
 LINEAR, LINEAR_MIPMAP_LINEAR, CLAMP_TO_EDGE = 9729, 9987, 33071
@@ -49,9 +53,11 @@ def tile_glb_bytes(
     textures: dict[str, tuple[bytes, str]],
     *,
     extras: dict,
+    material_extras: dict | None = None,
 ) -> bytes:
-    """Encode the tile: `textures` maps "albedo", "normals", "curvature", "accessibility" to
-    (encoded image bytes, MIME type); `extras` goes to the scene's extras (dh_tile)."""
+    """Encode the tile: `textures` maps "albedo", "normals", "curvature", "accessibility"
+    (and optionally those of OPTIONAL_MAPS) to (encoded image bytes, MIME type); `extras` goes
+    to the scene's extras (dh_tile), `material_extras` to the material's beside dh_maps."""
     indices, remap, unique = meshopt.reorder_mesh(mesh.indices, triangles=True, optsize=False)
     order = np.argsort(remap)[:unique]  # new place → old vertex
     n = int(unique)
@@ -99,7 +105,9 @@ def tile_glb_bytes(
         bin_parts.append(padded)
         bin_size += len(padded)
         fallback_size += length + (-length % 4)
+    # The four maps every tile has, then the optional ones (gloss: a scan's measured gloss).
     names = ["albedo", "normals", "curvature", "accessibility"]
+    names += [n for n in OPTIONAL_MAPS if n in textures]
     images = []
     for name in names:
         data, mime = textures[name]
@@ -165,7 +173,10 @@ def tile_glb_bytes(
                 },
                 # The skirts are seen from either side.
                 "doubleSided": True,
-                "extras": {"dh_maps": {"normals": 1, "curvature": 2, "accessibility": 3}},
+                "extras": {
+                    "dh_maps": {name: i for i, name in enumerate(names) if i > 0},
+                    **(material_extras or {}),
+                },
             }
         ],
         "samplers": [

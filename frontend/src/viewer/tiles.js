@@ -123,6 +123,47 @@ export function tileInfo(tile, object = null) {
 }
 
 /**
+ * The face of a whole tablet a tile belongs to: the `dh_face` of the root tileset's child that
+ * references the face's tileset (worker/tiles/tablet.py), found up the tile's parents, else
+ * read from its content's URL (`…/faces/<name>/3d/…`); null for a face model's tile.
+ */
+export function tileFace(tile) {
+  for (let t = tile; t; t = t.parent) {
+    const face = t.extras?.dh_face;
+    if (typeof face === 'string' && face) return face;
+  }
+  const uri = tile?.content?.uri ?? tile?.content?.url ?? '';
+  const m = /(?:^|\/)faces\/([^/]+)\/3d\//.exec(uri);
+  return m ? decodeURIComponent(m[1]) : null;
+}
+
+/**
+ * The faces of a whole tablet's root tileset, in its order (the `dh_face` of each child).
+ * @param {{children?: Array<{extras?: {dh_face?: string}}>} | null} root the root tile
+ * @returns {string[]}
+ */
+export function tilesetFaces(root) {
+  const names = [];
+  for (const child of root?.children ?? []) {
+    const face = child?.extras?.dh_face;
+    if (typeof face === 'string' && face && !names.includes(face)) names.push(face);
+  }
+  return names;
+}
+
+/**
+ * A tile's measured gloss for the relighting material: {texture, scale, exponent} from its
+ * `gloss` map and its material's `dh_gloss` (worker/tiles/build.py), or null (none, or a
+ * scale that is not > 0).
+ */
+export function tileGloss(texture, info) {
+  const scale = Number(info?.strength_scale);
+  const exponent = Number(info?.exponent);
+  if (!texture || !(scale > 0) || !(exponent > 0)) return null;
+  return { texture, scale, exponent };
+}
+
+/**
  * Open a tiled model.
  * @param {object} options
  * @param {string} options.indexUrl URL of tiles/index.json
@@ -131,6 +172,8 @@ export function tileInfo(tile, object = null) {
  * @param {() => void} options.invalidate ask the viewer for a frame (tiles arrived)
  * @param {number} [options.budgetMb] GPU memory budget of the tile cache, MB
  * @param {number} [options.errorTarget] screen-space error target, px
+ * @param {number} [options.seamDepthMm] a whole tablet's seam depth (material.js `seamDepth`):
+ *   where faces overlap, the one of larger weight (its normals' alpha) is drawn
  * @param {AbortSignal} [options.signal]
  * @returns {Promise<object>} the tiled model (see the returned object's members)
  */
@@ -140,6 +183,7 @@ export async function openTiledModel({
   invalidate,
   budgetMb = DEFAULT_BUDGET_MB,
   errorTarget = DEFAULT_ERROR_TARGET_PX,
+  seamDepthMm = 0,
   signal,
 }) {
   if (!(budgetMb > 0)) throw new RangeError(`budgetMb must be > 0, got ${budgetMb}`);
@@ -173,6 +217,7 @@ export async function openTiledModel({
   const materials = new Set(); // live tile materials (for shading changes)
   const perScene = new WeakMap(); // scene → {textures, materials}
   let shading = null;
+  const hiddenFaces = new Set(); // a whole tablet's faces not drawn (the page's checkboxes)
 
   const relight = {
     name: 'DH_RELIGHT',
@@ -187,7 +232,7 @@ export async function openTiledModel({
         const maps = gm?.userData?.dhTextures ?? {};
         const albedo = gm?.map ?? null;
         if (albedo) albedo.colorSpace = THREE.SRGBColorSpace;
-        for (const t of [albedo, maps.normals, maps.curvature, maps.accessibility]) if (t) own.textures.add(t);
+        for (const t of [albedo, maps.normals, maps.curvature, maps.accessibility, maps.gloss]) if (t) own.textures.add(t);
         if (maps.curvature) own.lazy.set(maps.curvature, 'curvature');
         if (maps.accessibility) own.lazy.set(maps.accessibility, 'accessibility');
         for (const m of Array.isArray(obj.material) ? obj.material : [obj.material]) own.originals.add(m);
@@ -196,16 +241,21 @@ export async function openTiledModel({
         // for a face (identity), a face's rotation into the tablet frame for a whole tablet.
         const toWorld = new THREE.Matrix4().multiplyMatrices(tiles.group.matrix, obj.matrixWorld);
         const rotation = new THREE.Matrix3().setFromMatrix4(new THREE.Matrix4().extractRotation(toWorld));
+        // A whole tablet's faces overlap: each face's normals carry its weight in alpha
+        // (docs/tiles.md), which the seam depth turns into "the best-measured face is drawn".
+        const gloss = tileGloss(maps.gloss, gm?.userData?.dh_gloss);
         const m = createPartMaterial(
           baseMaterial,
-          { rotation, normals: maps.normals ?? null, albedo },
-          { seamDepthMm: 0 },
+          { rotation, normals: maps.normals ?? null, albedo, gloss },
+          { seamDepthMm: kind === 'tablet' ? seamDepthMm : 0 },
         );
         m.userData.face = {
           curvature: maps.curvature ? curvatureLayers(maps.curvature) : [],
           accessibility: maps.accessibility ?? null,
         };
         m.userData.tile = tileInfo(tile, obj);
+        m.userData.faceName = kind === 'tablet' ? tileFace(tile) : null;
+        m.visible = !hiddenFaces.has(m.userData.faceName);
         if (shading) applyPartShading(m, m.userData.face, shading, false);
         obj.material = m;
         materials.add(m);
@@ -300,10 +350,28 @@ export async function openTiledModel({
     ];
   }
 
+  const faceNames = kind === 'tablet' ? tilesetFaces(tiles.root) : [];
+
   return {
     index,
     /** 'face' (one scan's image grid) or 'tablet' (a whole tablet's faces, external tilesets). */
     kind,
+    /** A whole tablet's faces (root tileset order), [] for a face model. */
+    faceNames,
+    /**
+     * Draw exactly the faces not named in `names` (a whole tablet's checkboxes): tiles of a
+     * hidden face, loaded now or later, get an invisible material (not drawn, not picked).
+     */
+    setHiddenFaces(names) {
+      hiddenFaces.clear();
+      for (const n of names ?? []) hiddenFaces.add(n);
+      for (const m of materials) m.visible = !hiddenFaces.has(m.userData.faceName);
+      invalidate();
+    },
+    /** The face (of a whole tablet) a picked object belongs to, or null. */
+    faceOf(object) {
+      return materials.has(object?.material) ? (object.material.userData.faceName ?? null) : null;
+    },
     blank: baseMaterial.userData.blank,
     tiles,
     /** The Object3D to add to the scene. */

@@ -454,7 +454,15 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
    */
   async function loadTiled(assets, { signal, budgetMb, errorTarget }) {
     const { openTiledModel, tiledAssets } = await import('./tiles.js');
-    const tiled = await openTiledModel({ indexUrl: tilesIndexUrl(assets), baseMaterial: material, invalidate, budgetMb, errorTarget, signal });
+    const tiled = await openTiledModel({
+      indexUrl: tilesIndexUrl(assets),
+      baseMaterial: material,
+      invalidate,
+      budgetMb,
+      errorTarget,
+      seamDepthMm: SEAM_DEPTH_MM,
+      signal,
+    });
     if (disposed || signal?.aborted) {
       tiled.dispose();
       return null;
@@ -462,7 +470,9 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     unloadModel();
     scene.add(tiled.object);
     const views = availableViews(tiled.kind);
-    model = { mesh: tiled.object, tiles: tiled, assets: tiledAssets(tiled), box: tiled.box, radius: tiled.radius, errors: {}, parts: null, partMaterials: [], views };
+    // A whole tablet's faces get the checkboxes of the single-mesh path (parts.js).
+    const parts = tiled.faceNames.length > 1 ? createPartToggles(tiled.faceNames) : null;
+    model = { mesh: tiled.object, tiles: tiled, assets: tiledAssets(tiled), box: tiled.box, radius: tiled.radius, errors: {}, parts, partMaterials: [], views };
     material.uniforms.uHeightRange.value.set(-tiled.box.max[2], -tiled.box.min[2]);
     setShading({});
     setView('obverse');
@@ -509,7 +519,8 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
   }
 
   function partsChanged() {
-    assignGroupMaterials();
+    if (model.tiles) model.tiles.setHiddenFaces(hiddenParts(model.parts));
+    else assignGroupMaterials();
     invalidate();
     onChange('parts');
   }
@@ -520,7 +531,8 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
    * (part: the whole tablet's face that was hit, else null). */
   function pick(clientX, clientY) {
     const hit = model ? pickPoint(canvas, camera, model.mesh, clientX, clientY) : null;
-    if (hit) hit.part = model.parts && hit.group !== null ? (model.parts.names[hit.group] ?? null) : null;
+    if (hit && model.tiles) hit.part = model.parts ? model.tiles.faceOf(hit.object) : null;
+    else if (hit) hit.part = model.parts && hit.group !== null ? (model.parts.names[hit.group] ?? null) : null;
     return hit;
   }
 

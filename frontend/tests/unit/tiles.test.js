@@ -1,5 +1,5 @@
 import { describe, expect, it } from 'vitest';
-import { resolveTilesUrl, tileInfo, validateIndex } from '../../src/viewer/tiles.js';
+import { resolveTilesUrl, tileFace, tileGloss, tileInfo, tilesetFaces, validateIndex } from '../../src/viewer/tiles.js';
 import { tileOptionsFromSearch, tilesIndexUrl } from '../../src/viewer/tilesIndex.js';
 
 const FACE = {
@@ -55,5 +55,39 @@ describe('streaming settings in the URL', () => {
     expect(bad.options).toEqual({});
     expect(bad.ignored).toEqual(['tile_budget_mb=0 (1 to 4096)', 'tile_error_px=abc (0.25 to 64)']);
     expect(tileOptionsFromSearch('')).toEqual({ options: {}, ignored: [] });
+  });
+});
+
+describe('a whole tablet streamed face by face', () => {
+  // The root tileset of worker/tiles/tablet.py: one child per face, each an external tileset.
+  const root = {
+    children: [
+      { extras: { dh_face: 'obverse' }, content: { uri: '../faces/obverse/3d/tileset.json' } },
+      { extras: { dh_face: 'reverse' }, content: { uri: '../faces/reverse/3d/tileset.json' } },
+      { extras: {} },
+    ],
+  };
+
+  it('lists its faces in the root tileset order', () => {
+    expect(tilesetFaces(root)).toEqual(['obverse', 'reverse']);
+    expect(tilesetFaces(null)).toEqual([]);
+    expect(tilesetFaces({ children: [{ extras: { dh_face: 'a' } }, { extras: { dh_face: 'a' } }] })).toEqual(['a']);
+  });
+
+  it('tells which face a tile belongs to, up its parents or from its URL', () => {
+    const faceRoot = { parent: root.children[1], extras: { dh_tile: { level: 0 } } };
+    const leaf = { parent: { parent: faceRoot }, content: { uri: '2/1_0.glb' } };
+    expect(tileFace(leaf)).toBe('reverse');
+    const orphan = { content: { uri: 'http://h/api/v1/models/4/assets/tiles/faces/top%20edge/3d/1/0_0.glb' } };
+    expect(tileFace(orphan)).toBe('top edge');
+    expect(tileFace({ content: { uri: '3d/0/0_0.glb' } })).toBeNull(); // a face model's tile
+  });
+
+  it("takes a tile's measured gloss only with a usable scale", () => {
+    const texture = { isTexture: true };
+    expect(tileGloss(texture, { strength_scale: 0.3, exponent: 40 })).toEqual({ texture, scale: 0.3, exponent: 40 });
+    expect(tileGloss(texture, { strength_scale: 0, exponent: 40 })).toBeNull();
+    expect(tileGloss(texture, undefined)).toBeNull();
+    expect(tileGloss(null, { strength_scale: 0.3, exponent: 40 })).toBeNull();
   });
 });
