@@ -133,7 +133,7 @@ def is_rights_uri(value: object) -> bool:
 
 def cdli_url(p_number: str | None) -> str | None:
     """The CDLI artifact page of a P-number (``P254191`` → …/artifacts/254191), else None."""
-    if not p_number or not re.fullmatch(r"P\d{6}", p_number) or int(p_number[1:]) == 0:
+    if not p_number or not re.fullmatch(r"P[0-9]{6}", p_number) or int(p_number[1:]) == 0:
         return None
     return CDLI_ARTIFACT_URL.format(int(p_number[1:]))
 
