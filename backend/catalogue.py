@@ -28,7 +28,7 @@ from sqlalchemy.orm import Session
 from backend.atf import MAX_ATF_CHARS
 from backend.tables import Tablet
 
-P_NUMBER = re.compile(r"^[PQX]\d{6}$")
+P_NUMBER = re.compile(r"^[PQX][0-9]{6}$")
 TEXT_FIELDS: dict[str, int] = {  # column -> max length (as in tables.py)
     "designation": 300,
     "museum_no": 300,

@@ -100,6 +100,8 @@ class FaceModel:
     annotations: Sequence[SignAnnotation] = ()
     # The annotations of the model with their regions in its scene (metres), 3-D manifest.
     scene_annotations: Sequence[SignAnnotation] = ()
+    # Made from simulated scans: labels and the summary say so, as the pages and plates do.
+    simulated: bool = False
 
 
 @dataclass(frozen=True)
@@ -133,7 +135,7 @@ def is_rights_uri(value: object) -> bool:
 
 def cdli_url(p_number: str | None) -> str | None:
     """The CDLI artifact page of a P-number (``P254191`` → …/artifacts/254191), else None."""
-    if not p_number or not re.fullmatch(r"P\d{6}", p_number) or int(p_number[1:]) == 0:
+    if not p_number or not re.fullmatch(r"P[0-9]{6}", p_number) or int(p_number[1:]) == 0:
         return None
     return CDLI_ARTIFACT_URL.format(int(p_number[1:]))
 
@@ -152,14 +154,23 @@ def metadata_entries(fields: Mapping[str, Any]) -> list[dict[str, Any]]:
     return entries
 
 
-def summary_text(fields: Mapping[str, Any], faces: Sequence[str]) -> str:
-    """One sentence a harvester can show under the label."""
+SIMULATED_NOTE = "SIMULATED scans, not measurements of this tablet"
+
+
+def summary_text(fields: Mapping[str, Any], faces: Sequence[str], simulated: bool = False) -> str:
+    """One sentence a harvester can show under the label (saying so when any scan shown is
+    simulated: a demo attaches simulated scans to a real catalogue record)."""
     what = str(fields.get("object_type") or "Cuneiform tablet")
     where = ", ".join(str(fields[k]) for k in ("period", "provenience") if fields.get(k))
     text = f"{what}{f' ({where})' if where else ''}"
     if faces:
         text += f": relightable 2.5-D scans of {', '.join(faces)}"
-    return text + "."
+    return text + (f" ({SIMULATED_NOTE})." if simulated else ".")
+
+
+def _version_label(what: str, face_model: FaceModel) -> str:
+    simulated = ", simulated scan" if face_model.simulated else ""
+    return f"{what}, model version {face_model.version}{simulated}"
 
 
 def _face_key(face: str) -> tuple[int, str]:
@@ -263,7 +274,7 @@ def _canvas(base: str, face_model: FaceModel) -> dict[str, Any]:
     canvas: dict[str, Any] = {
         "id": canvas_id,
         "type": "Canvas",
-        "label": lang(f"{face_model.face}, model version {face_model.version}", "en"),
+        "label": lang(_version_label(face_model.face, face_model), "en"),
         "width": w,
         "height": h,
         "items": [{"id": f"{canvas_id}/page/1", "type": "AnnotationPage", "items": annotations}],
@@ -415,7 +426,7 @@ def build_manifest(
         CONTEXT,
         manifest_id,
         fields,
-        summary=summary_text(fields, [f.face for f in shown]),
+        summary=summary_text(fields, [f.face for f in shown], any(f.simulated for f in shown)),
         items=[_canvas(base, f) for f in shown],
         shown=shown,
         provenance=provenance,
@@ -459,14 +470,14 @@ def _scene(base: str, face_model: FaceModel) -> dict[str, Any]:
             "id": urls["model.glb"],
             "type": "Model",
             "format": "model/gltf-binary",
-            "label": lang(f"{label}, model version {face_model.version}", "en"),
+            "label": lang(_version_label(label, face_model), "en"),
         },
         "target": {"id": scene_id, "type": "Scene"},
     }
     scene: dict[str, Any] = {
         "id": scene_id,
         "type": "Scene",
-        "label": lang(label, "en"),
+        "label": lang(f"{label} (simulated scan)" if face_model.simulated else label, "en"),
         "items": [{"id": f"{scene_id}/page/1", "type": "AnnotationPage", "items": [annotation]}],
     }
     renderings = _renderings({k: v for k, v in urls.items() if k != "model.glb"})
@@ -515,7 +526,12 @@ def build_3d_manifest(
         CONTEXT_3D,
         manifest_id,
         fields,
-        summary=summary_text(fields, []).rstrip(".") + ": 3-D models.",
+        summary=summary_text(fields, []).rstrip(".")
+        + (
+            f": 3-D models ({SIMULATED_NOTE})."
+            if any(f.simulated for f in shown)
+            else ": 3-D models."
+        ),
         items=[_scene(base, f) for f in ordered],
         shown=shown,
         provenance=provenance,

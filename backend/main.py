@@ -22,6 +22,7 @@ from fastapi.staticfiles import StaticFiles
 
 from backend.api import annotations, auth, institutions, tablets, tokens, users
 from backend.api.deps import SessionGate
+from backend.body_limit import BodyLimit, upload_chunks_path
 from backend.db import make_engine, make_sessionmaker, server_pool_size
 from backend.docs import DOCS_PATH, install_docs
 from backend.errors import install_error_handlers
@@ -97,6 +98,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         allow_headers=["Authorization", "Range", "Accept"],
         expose_headers=["Content-Range", "ETag", "X-Total-Count", "Content-Disposition"],
         allow_credentials=False,
+    )
+    app.add_middleware(
+        BodyLimit,
+        max_bytes=settings.request_max_body_bytes,
+        exempt=upload_chunks_path(settings.api_prefix),
     )
     app.add_middleware(SecurityHeaders, settings=settings, docs_path=DOCS_PATH)
     install_docs(

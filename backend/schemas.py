@@ -14,7 +14,7 @@ from backend.iiif import RIGHTS_PATTERN, cdli_url
 from backend.licences import LICENCE_DESCRIPTION, check_licence, effective
 from backend.tables import Role
 
-P_NUMBER_PATTERN = r"^[PQX]\d{6}$"
+P_NUMBER_PATTERN = r"^[PQX][0-9]{6}$"  # ASCII digits: \d also takes "４" (fullwidth)
 EMAIL_PATTERN = r"^[^@\s]+@[^@\s]+\.[^@\s]+$"
 
 

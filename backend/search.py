@@ -11,7 +11,9 @@ Query text is cut into word tokens (``\\w+``); every token must match as a word 
 (``vat 152`` finds "VAT 15259"), regardless of case and diacritics on both databases
 ("puzris" finds "Puzriš"). Searched columns (migration 0004_search): designation, P-number,
 museum number, excavation number, primary publication, notes, period, genre, subgenre,
-provenience, language and collection, so "Ur III" finds the Ur III tablets.
+provenience, language and collection, so "Ur III" finds the Ur III tablets. By relevance,
+records where every word matches whole come first (the Ur III tablets before the Uruk III
+ones "ur" also finds), then by the database's rank.
 
 Facet values are grouped regardless of letter case (catalogues write "Mathematical" and
 "mathematical"): a facet lists each value once, under its most frequent spelling, with the
@@ -117,7 +119,13 @@ class _TextMatch:
                 .where(matches)
                 .subquery("text_match")
             )
-            self.order = self.ranked.c.score.asc()
+            # Records where every word is whole come first ("Ur III" before "Uruk III"),
+            # then bm25: prefixes are for typing, not for outranking what was typed.
+            whole = sa.literal_column("tablets_fts").op("MATCH")(
+                sa.literal(" ".join(f'"{t}"' for t in tokens))
+            )
+            whole_first = sa.case((Tablet.id.in_(select(fts.c.rowid).where(whole)), 0), else_=1)
+            self.order = [whole_first.asc(), self.ranked.c.score.asc()]
         elif dialect == "postgresql":
             tsquery = " & ".join(f"{t}:*" for t in tokens)
             vector = sa.literal_column("tablets.search_vector")
@@ -125,7 +133,12 @@ class _TextMatch:
                 sa.literal_column("'simple'::regconfig"), func.f_unaccent(sa.literal(tsquery))
             )
             self.condition = vector.op("@@")(query)
-            self.order = func.ts_rank(vector, query).desc()
+            whole = func.to_tsquery(
+                sa.literal_column("'simple'::regconfig"),
+                func.f_unaccent(sa.literal(" & ".join(tokens))),
+            )
+            whole_first = sa.case((vector.op("@@")(whole), 0), else_=1)
+            self.order = [whole_first.asc(), func.ts_rank(vector, query).desc()]
             self.ranked = None
         else:
             raise ValueError(f"dialect: full-text search not available for {dialect!r}")
@@ -184,7 +197,7 @@ def _order(query: SearchQuery, text: _TextMatch | None) -> tuple[list, bool]:
     if sort == "relevance":
         if text is None:
             return [Tablet.designation.asc(), Tablet.id.asc()], False
-        return [text.order, Tablet.id.asc()], True
+        return [*text.order, Tablet.id.asc()], True
     column = SORT_FIELDS[sort.lstrip("-")]
     direction = column.desc() if sort.startswith("-") else column.asc()
     # NULLs last either way, then id for a stable order across pages. Without the NULL term

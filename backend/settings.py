@@ -87,6 +87,12 @@ class Settings(BaseSettings):
         "database session at once, and (plus 10) the size of the connection pool (backend.db)",
     )
 
+    request_max_body_bytes: int = Field(
+        default=4 * 1024 * 1024,
+        ge=1024,
+        description="largest request body (413 above it; upload chunks have their own limits)",
+    )
+
     # search
     search_max_page_size: int = 200
     search_facet_limit: int = 50

@@ -46,7 +46,7 @@ from backend.security import SessionSigner
 from backend.settings import Settings
 from backend.tables import Institution, Role, Tablet, User
 
-TABLET_REF_PATTERN = r"^(\d{1,18}|[PQX]\d{6})$"
+TABLET_REF_PATTERN = r"^([0-9]{1,18}|[PQX][0-9]{6})$"  # ASCII: \d takes any Unicode digit
 
 
 async def get_settings(request: Request) -> Settings:

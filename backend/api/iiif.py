@@ -24,7 +24,7 @@ from backend.annotations import (
     transform_points,
 )
 from backend.api.deps import ReadableTablet, SessionDep, SettingsDep
-from backend.api.models import StorageDep, StorageErrorRoute
+from backend.api.models import StorageDep, StorageErrorRoute, model_is_simulated
 from backend.errors import not_found
 from backend.iiif import (
     CONTEXT,
@@ -141,6 +141,7 @@ def _inputs(session: Session, settings, tablet: Tablet):
                 rights=model.licence,
                 attribution=model.attribution,
                 annotations=tuple(signs.get((model.id, face), ())),
+                simulated=model_is_simulated(model),
             )
         )
     licence = licences.effective(tablet)

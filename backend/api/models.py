@@ -113,12 +113,8 @@ class ModelOut(BaseModel):
 
     @classmethod
     def of(cls, model: Model, *, api_prefix: str) -> ModelOut:
-        from worker.bundle import is_simulated  # as backend.uploads: loaded on first use
-
         base = f"{api_prefix}/models/{model.id}/assets"
         applies = licences.effective(model.tablet, model)
-        report = model.report or {}
-        scan = report.get("scan") if isinstance(report.get("scan"), dict) else {}
         return cls(
             id=model.id,
             scan_id=model.scan_id,
@@ -128,12 +124,22 @@ class ModelOut(BaseModel):
             created_at=model.created_at,
             report=model.report or {},
             assets={name: f"{base}/{name}" for name in sorted(model.assets or {})},
-            simulated=report.get("simulated") is True or is_simulated(scan.get("tablet")),
+            simulated=model_is_simulated(model),
             licence=model.licence,
             attribution=model.attribution,
             effective_licence=applies.licence,
             effective_attribution=applies.attribution,
         )
+
+
+def model_is_simulated(model: Model) -> bool:
+    """Made from simulated scans: its report says so (a whole tablet) or its scan's free
+    metadata does (``scan.tablet.simulated``, SCAN_BUNDLE.md)."""
+    from worker.bundle import is_simulated  # as backend.uploads: loaded on first use
+
+    report = model.report or {}
+    scan = report.get("scan") if isinstance(report.get("scan"), dict) else {}
+    return report.get("simulated") is True or is_simulated(scan.get("tablet"))
 
 
 class ModelUpdate(LicenceFields):

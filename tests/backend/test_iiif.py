@@ -193,6 +193,35 @@ def test_no_model_yet_is_404(client, world):
     assert response.status_code == 404 and response.json()["where"] == "tablet_id"
 
 
+@pytest.mark.parametrize("simulated", [True, False])
+def test_simulated_scans_say_so_in_both_manifests(simulated):
+    # The demo attaches simulated scans to a real record (P451806): a IIIF viewer elsewhere
+    # showed them as that tablet's scans, with nothing saying they were simulated.
+    urls = {"albedo.png": "http://x/a.png", "model.glb": "http://x/m.glb"}
+    face = FaceModel(
+        face="obverse",
+        model_id=1,
+        version=2,
+        asset_urls=urls,
+        width_px=4,
+        height_px=3,
+        simulated=simulated,
+    )
+    fields = {"designation": "T", "period": "Ur III"}
+    manifest = build_manifest(manifest_id="http://x/m.json", fields=fields, face_models=[face])
+    scenes = build_3d_manifest(manifest_id="http://x/3d.json", fields=fields, face_models=[face])
+    Prezi3Manifest(**manifest)
+    canvas, scene = manifest["items"][0], scenes["items"][0]
+    texts = [
+        manifest["summary"]["en"][0],
+        scenes["summary"]["en"][0],
+        canvas["label"]["en"][0],
+        scene["label"]["en"][0],
+        scene["items"][0]["items"][0]["body"]["label"]["en"][0],
+    ]
+    assert [("simulated" in t.lower()) for t in texts] == [simulated] * len(texts), texts
+
+
 def test_build_manifest_rules():
     images = {"albedo.png": "http://x/a.png", "model.glb": "http://x/m.glb"}
     face = FaceModel(face="top", model_id=1, version=3, asset_urls=images, width_px=4, height_px=3)

@@ -135,3 +135,16 @@ def test_migration_keeps_rows_and_search(db_url):
             ).scalars()
             assert sorted(hits) == [1, 2]
     engine.dispose()
+
+
+@pytest.mark.parametrize("digits", ["４５１８０６", "٤٥١٨٠٦"])  # fullwidth, Arabic-Indic
+def test_only_ascii_digits_make_a_p_number_or_an_id(client, world, digits):
+    # Python's and pydantic's \d take any Unicode digit: "P４５１８０６" was stored as a
+    # P-number, and /tablets/１ answered as tablet 1, a second URL for one record.
+    assert (
+        create(client, world, "admin", f"P{digits}", institution_id=world.institution_a).status_code
+        == 422
+    )
+    assert get(client, world, "admin", f"P{digits}").status_code == 422
+    assert get(client, world, "admin", digits[0]).status_code == 422
+    assert get(client, world, "admin", str(world.public_a)).status_code == 200

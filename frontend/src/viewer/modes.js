@@ -28,7 +28,7 @@ const FILE_OF = {
   albedo: 'albedo.png',
   curvature: 'curvature.png',
   accessibility: 'accessibility.png',
-  quality: 'a quality map (quality/*.npy)',
+  quality: 'quality map (quality/*.npy)',
   trust: 'trust.png (made by the worker from the quality maps)',
 };
 

@@ -23,9 +23,11 @@ describe('missing textures are named in the UI', () => {
     expect(missingMessage('curvature', a)).toBe('This model has no curvature.png: the curvature view is not available.');
     a.names.accessibility = null;
     expect(missingMessage('accessibility', a)).toMatch(/no accessibility\.png/);
+    a.names.quality = []; // read as English: it said "This model has no a quality map"
+    expect(missingMessage('quality', a)).toBe('This model has no quality map (quality/*.npy): the quality view is not available.');
   });
   it('says when a map is loading or failed to load', () => {
-    expect(missingMessage('quality', full())).toMatch(/^Loading a quality map/);
+    expect(missingMessage('quality', full())).toMatch(/^Loading quality map/);
     expect(missingMessage('curvature', full(), { curvature: 'HTTP 503' })).toBe('Could not load curvature.png: HTTP 503');
   });
   it('warns that relighting is smoothed without normals.png', () => {

@@ -302,6 +302,9 @@ def test_a_face_model_offers_only_its_own_side(whole_page, whole_library, tools)
     assert reverse.is_disabled()
     assert "mirrored" in reverse.get_attribute("title")
     assert page.locator("[data-view=obverse]").is_enabled()
+    # ... and looks it: the site's button style had made disabled buttons look enabled.
+    look = "el => { const s = getComputedStyle(el); return [s.opacity, s.cursor]; }"
+    assert reverse.evaluate(look) != page.locator("[data-view=obverse]").evaluate(look)
     before = page.evaluate("() => window.hammurabi.viewer.getState().camera.position")
     page.locator("body").press("r")  # the key does nothing either
     assert page.evaluate("() => window.hammurabi.viewer.getState().camera.position") == before
