@@ -244,9 +244,7 @@ def test_a_face_models_section_is_its_full_resolution_heights(page, whole, tools
     assert panel.get_attribute("data-source") == "heights"
     # The plane holds the obverse view's axis: the outline is the row's heights, rim to rim.
     h = whole.face_height[row]
-    assert float(panel.get_attribute("data-width-mm")) == pytest.approx(
-        (h.size - 1) / 10, abs=0.11
-    )
+    assert float(panel.get_attribute("data-width-mm")) == pytest.approx((h.size - 1) / 10, abs=0.11)
     depth = float(panel.get_attribute("data-depth-mm"))
     assert depth == pytest.approx(np.ptp(h) / 1000, rel=0.02), (depth, np.ptp(h))
     page.locator("#section-close").click()

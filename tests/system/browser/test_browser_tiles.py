@@ -269,9 +269,7 @@ def test_profile_reads_only_the_rows_it_touches(tiled_page, tiled, tools):
     assert not errors, errors
 
 
-def test_section_reads_rows_and_best_light_says_it_waits_for_a_whole_mesh(
-    tiled_page, tiled, tools
-):
+def test_section_reads_rows_and_best_light_says_it_waits_for_a_whole_mesh(tiled_page, tiled, tools):
     """A streamed face is cut from its full-resolution heights, the rows between the two ends
     read by HTTP Range as a profile reads them (scholar.js); the best-light tool, which needs
     one normal map in memory, says so when chosen and picks nothing. Its trust mode (no trust
