@@ -55,16 +55,24 @@ const viewer = createViewer($('viewer'), {
     if (currentModel) scheduleHash();
   },
 });
+/** A model asset's URL by name, or null. */
+const assetUrl = (name) => (name && currentModel?.assets?.[name] ? api.assetHref(currentModel.assets[name]) : null);
+/** A whole tablet's face's pixel size (µm), from the registration's report (faces.<label>). */
+const facePixelSizeUm = (label) => Number(currentModel?.report?.faces?.[label]?.pixel_size_um) || null;
 scholar = bindScholarTools(viewer, {
-  assetUrl: (name) => (currentModel?.assets?.[name] ? api.assetHref(currentModel.assets[name]) : null),
+  assetUrl,
+  facePixelSizeUm,
   getPixelSizeUm: () => Number(currentModel?.report?.pixel_size_um) || null,
+  getHeightUrl: () => assetUrl('height.npy'),
   baseName: () => (tablet?.designation ?? `tablet-${tabletId}`).replace(/[^\w.-]+/g, '_'),
   describe: describeShown,
 });
 ui = bindViewerUi(viewer, {
   uncertainty: scholar.uncertainty,
   onAction: scholar.onAction,
-  getHeightUrl: () => (currentModel?.assets?.['height.npy'] ? api.assetHref(currentModel.assets['height.npy']) : null),
+  getHeightUrl: () => assetUrl('height.npy'),
+  assetUrl,
+  facePixelSizeUm,
   getPixelSizeUm: () => Number(currentModel?.report?.pixel_size_um) || null,
   baseName: () => (tablet?.designation ?? `tablet-${tabletId}`).replace(/[^\w.-]+/g, '_'),
   face: () => currentModel?.report?.scan?.face ?? null,

@@ -45,6 +45,7 @@ QUALITY_MAPS = (
     "fringe_modulation.npy",
     "fringe_disagreement_um.npy",
     "guard.npy",
+    "walls.npy",  # where a refinement changed the heights (the trust map's "refined" class)
 )
 
 
@@ -106,6 +107,10 @@ def load_model_dir(path: str | os.PathLike) -> tuple[ScanCloud, dict]:
         "mask": mask,
         "albedo": albedo,
         "pixel_size_um": float(pixel),
+        # What each refinement did (report.json), for the face's trust.json.
+        "refinements": report.get("refinements")
+        if isinstance(report.get("refinements"), dict)
+        else {},
         "tablet": scan.get("tablet") if isinstance(scan.get("tablet"), dict) else {},
         # The face model's shading maps, image grid, passed on as they are to the whole tablet.
         "shading_maps": {

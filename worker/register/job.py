@@ -5,7 +5,8 @@ Fetches the latest model of each scan of the job's tablet, registers them
 model (no scan) through ``backend.jobs.mark_succeeded``: its assets are ``model.glb`` (the
 one-node-per-face scene, so the viewer shows the whole tablet), ``faces/<label>/*.png`` (each
 face's full-resolution normals blended across the seams, quality weight and shading maps),
-``faces/<label>/quality/*.npy`` (the face's quality maps), ``faces/<label>/photos/*`` and
+``faces/<label>/quality/*.npy`` (the face's quality maps), ``faces/<label>/trust.*`` and
+``uncertainty_um.npy`` (its trust assets), ``faces/<label>/height.npy``, ``faces/<label>/photos/*`` and
 ``faces/<label>/gloss.*`` (the face's photographs and measured gloss), ``merged.ply``,
 ``transforms.json``, ``report.json``, ``fatcross/*.png`` and ``tiles/`` (each face's
 streaming tiles and the root tileset, ``worker.tiles.tablet``).

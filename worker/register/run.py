@@ -3,6 +3,7 @@ fatcross plates and the report, as bytes ready to be written (no I/O here beyond
 
 from __future__ import annotations
 
+import io
 import json
 import time
 
@@ -10,12 +11,14 @@ import numpy as np
 from scipy import ndimage
 
 from worker.bundle import is_simulated
+from worker.durable import npy_bytes
 from worker.register.blend import FaceGrid, blend_faces, face_weight
 from worker.register.fatcross import FaceMaps
 from worker.register.io import face_asset_dir, load_model_dir
 from worker.register.merge import face_normal_map, grid_mesh, merged_surface, scene_glb
 from worker.register.plates import DEFAULT_LICENCE, PlateInfo, fatcross_files
 from worker.register.refine import register_scans
+from worker.trust_assets import QUALITY_INPUTS, trust_files, trust_maps, trust_scales_um
 
 __all__ = ["blend_loaded", "face_files", "register_model_dirs", "whole_tablet_model"]
 
@@ -38,7 +41,53 @@ def whole_tablet_model(loaded: list[tuple], transforms: list) -> dict[str, bytes
     files = {"model.glb": scene_glb(meshes, dict(zip(labels, transforms, strict=True)))}
     for (c, raw), (normals, _) in zip(loaded, blended, strict=True):
         files.update(face_files(c.label, raw, normals=normals))
+    files.update(faces_trust_files(loaded))
     return files
+
+
+def faces_trust_files(loaded: list[tuple]) -> dict[str, bytes]:
+    """Each face's trust assets (worker/trust_assets.py: ``trust.png``, ``trust.json``,
+    ``uncertainty_um.npy``) under ``faces/<label>/``, from its own quality maps, heights and
+    normals as the face model had them (not the blended normals: σ_h is the face's own
+    measurement). One pair of legend tops for every face (the largest of the faces' own), so
+    one legend in µm reads the whole tablet."""
+    maps = []
+    for _, raw in loaded:
+        quality = {
+            name: _npy(raw.get("quality_maps", {}).get(f"{name}.npy")) for name in QUALITY_INPUTS
+        }
+        m = trust_maps(
+            raw["height_um"], quality, normals=raw["normals"], pixel_size_um=raw["pixel_size_um"]
+        )
+        maps.append((quality, m))
+    if not maps:
+        return {}
+    tops = [trust_scales_um(*m) for _, m in maps]
+    scales = (max(t[0] for t in tops), max(t[1] for t in tops))
+    out = {}
+    for (c, raw), (quality, m) in zip(loaded, maps, strict=True):
+        prefix = face_asset_dir(c.label)
+        files = trust_files(
+            raw["height_um"],
+            quality,
+            normals=raw["normals"],
+            pixel_size_um=raw["pixel_size_um"],
+            refinements=raw.get("refinements", {}),
+            scales_um=scales,
+            maps=m,
+        )
+        out.update({f"{prefix}/{name}": data for name, data in files.items()})
+    return out
+
+
+def _npy(data: bytes | None) -> np.ndarray | None:
+    """A .npy file's array, or None when absent or unreadable (the trust map says less)."""
+    if data is None:
+        return None
+    try:
+        return np.load(io.BytesIO(data), allow_pickle=False)
+    except (OSError, ValueError):
+        return None
 
 
 def blend_loaded(loaded: list[tuple], transforms: list) -> list[tuple]:
@@ -67,7 +116,8 @@ def face_files(label: str, raw: dict, *, normals: np.ndarray | None = None) -> d
     node of that face carries the image-grid TEXCOORD_0 and the scan → tablet transform):
     ``faces/<label>/normals.png`` (``normals``, default the face's own, in its scan frame,
     with the face's own quality weight in alpha, `face_normal_map`), the face model's shading
-    maps (curvature, accessibility), its quality maps (``quality/*.npy``), photographs
+    maps (curvature, accessibility), its heights (``height.npy``), its quality maps
+    (``quality/*.npy``; the trust assets made from them are `faces_trust_files`'), photographs
     (``photos/index.json`` and JPEGs) and measured gloss (``gloss.png``/``gloss.json``) as they
     are.
     The albedo is the node's baseColorTexture in model.glb."""
@@ -80,6 +130,9 @@ def face_files(label: str, raw: dict, *, normals: np.ndarray | None = None) -> d
         weight=own,
     )
     out = {f"{prefix}/normals.png": _png(rgba)}
+    # The face's full-resolution heights (its own grid, µm, NaN off the tablet): what the
+    # viewer's profiles and sections of the whole tablet are cut from, as on the face model.
+    out[f"{prefix}/height.npy"] = npy_bytes(np.asarray(raw["height_um"], np.float32))
     for name, data in raw.get("shading_maps", {}).items():
         out[f"{prefix}/{name}"] = data
     for name, data in raw.get("quality_maps", {}).items():
@@ -90,8 +143,6 @@ def face_files(label: str, raw: dict, *, normals: np.ndarray | None = None) -> d
 
 
 def _png(image) -> bytes:
-    import io
-
     from PIL import Image
 
     buf = io.BytesIO()
@@ -183,6 +234,7 @@ def register_model_dirs(
                 "face": c.face,
                 "pixel_size_um": raw["pixel_size_um"],
                 "quality_maps": sorted(raw.get("quality_maps", {})),
+                "trust": f"{face_asset_dir(c.label)}/trust.json" in files,
                 "photos": "photos/index.json" in raw.get("photo_files", {}),
                 "gloss": "gloss.png" in raw.get("photo_files", {}),
             }

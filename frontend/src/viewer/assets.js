@@ -15,6 +15,7 @@ import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { mergeGeometries } from 'three/addons/utils/BufferGeometryUtils.js';
 import { parseNpy } from './npy.js';
+import { mergeTrustMeta } from './trust.js';
 
 /** Extra smoothing (mip levels) offered when the worker made a single curvature map. */
 const SMOOTHED_CURVATURE_LODS = [2, 4];
@@ -133,8 +134,8 @@ export function faceAssetPrefix(name) {
   return `faces/${safe.replace(/^\.+|\.+$/g, '') || '_'}`;
 }
 
-/** A face's own maps among the assets: {normals, curvature: [], accessibility, gloss, glossInfo}
- * (names or null). */
+/** A face's own maps among the assets: {normals, curvature: [], accessibility, gloss, glossInfo,
+ * trust, trustMeta, uncertainty, height} (names or null). */
 export function classifyFaceAssets(assets, name) {
   const prefix = `${faceAssetPrefix(name)}/`;
   const own = Object.fromEntries(
@@ -150,8 +151,26 @@ export function classifyFaceAssets(assets, name) {
     accessibility: full(c.accessibility),
     gloss: full(c.gloss),
     glossInfo: full(c.glossInfo),
+    // worker/register/run.py: the face's trust assets and its full-resolution heights
+    trust: full(c.trust),
+    trustMeta: full(c.trustMeta),
+    uncertainty: full(c.uncertainty),
+    height: full(c.height),
   };
 }
+
+/** A face without an image grid: none of its maps. */
+const NO_FACE_ASSETS = Object.freeze({
+  normals: null,
+  curvature: [],
+  accessibility: null,
+  gloss: null,
+  glossInfo: null,
+  trust: null,
+  trustMeta: null,
+  uncertainty: null,
+  height: null,
+});
 
 /**
  * The GLB's meshes as one geometry in the scene's frame. A scene of several nodes (the
@@ -196,6 +215,7 @@ async function glbToGeometry(buffer) {
       name: obj.name || obj.parent?.name || '',
       albedo,
       rotation: new THREE.Matrix3().setFromMatrix4(new THREE.Matrix4().extractRotation(toWorld)),
+      toWorld,
       hasUv: Boolean(obj.geometry.attributes.uv),
     });
   });
@@ -306,13 +326,17 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
     out.parts = parts.map((p) => p.name);
     out.faces = parts.map((p) => ({
       name: p.name,
-      assets: p.hasUv ? classifyFaceAssets(assets, p.name) : { normals: null, curvature: [], accessibility: null, gloss: null },
+      assets: p.hasUv ? classifyFaceAssets(assets, p.name) : NO_FACE_ASSETS,
       rotation: p.rotation,
+      // scan frame (mm) → model frame and back (faceGrids.js), column-major
+      toModel: p.toWorld.elements.slice(),
+      toFace: p.toWorld.clone().invert().elements.slice(),
       albedo: track(p.albedo),
       normals: null,
       curvature: null,
       accessibility: null,
       gloss: null,
+      trust: null, // {texture, meta} once loaded, false when the face has no trust.png
     }));
     // Every face's full-resolution normals load with the mesh (they are what relights it),
     // and its measured gloss (natural colour) where its scan had one.
@@ -351,6 +375,28 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
   };
 
   async function loadKind(kind) {
+    if (kind === 'trust' && out.faces.length) {
+      // A whole tablet: each face's own trust map, on its own grid, all on one legend
+      // (worker/register/run.py encodes every face with the same legend tops).
+      await Promise.all(
+        out.faces.map(async (f) => {
+          if (!f.assets.trust) {
+            f.trust = false;
+            return;
+          }
+          const [png, meta] = await Promise.all([
+            get(f.assets.trust),
+            f.assets.trustMeta ? get(f.assets.trustMeta).then((b) => JSON.parse(new TextDecoder().decode(b))) : {},
+          ]);
+          f.trust = { texture: track(await bytesToTexture(png, { srgb: false, nearest: true })), meta };
+        }),
+      );
+      const withTrust = out.faces.filter((f) => f.trust);
+      out.trust = withTrust.length
+        ? { texture: withTrust[0].trust.texture, meta: mergeTrustMeta(withTrust.map((f) => f.trust.meta)) }
+        : false;
+      return;
+    }
     if (kind === 'trust') {
       if (!names.trust) {
         out.trust = false;

@@ -12,10 +12,20 @@
  *   2022), centre and radius in CSS pixels of the canvas.
  */
 
-/** Modes the lens can show: those whose maps are loaded with the model or kept bound
- * whatever the main mode (curvature, accessibility and quality maps are bound for their
- * own mode only). */
-export const LENS_MODES = Object.freeze(['natural', 'clay', 'relief', 'depth', 'normals', 'trust']);
+/** Modes the lens can show: every shading mode (permalink.js' SHADING_MODES; listed here, as
+ * permalink.js imports this module). The viewer binds the lens mode's maps beside the main
+ * mode's and loads them on first use, as it does for the main mode. */
+export const LENS_MODES = Object.freeze([
+  'natural',
+  'clay',
+  'curvature',
+  'accessibility',
+  'relief',
+  'depth',
+  'normals',
+  'quality',
+  'trust',
+]);
 
 export const UNSHARP_MAX = 8;
 export const RADIUS_RANGE_PX = Object.freeze([1, 64]);

@@ -55,7 +55,10 @@ const fragmentShader = /* glsl */ `
   uniform sampler2D uAccessMap;
   uniform sampler2D uQualityMap;
   uniform vec2 uQualityRange;
-  uniform bool uHasTexture;       // the texture the current mode needs is present
+  // Each lazily loaded map is present (bound for the main mode and for the lens' mode).
+  uniform bool uHasCurvature;
+  uniform bool uHasAccess;
+  uniform bool uHasQuality;
   uniform vec2 uTexelSize;
   uniform vec3 uLightDir;
   uniform float uIntensity;
@@ -152,12 +155,12 @@ const fragmentShader = /* glsl */ `
       colour = lit(uClay, n);
       if (uLumaUnsharp > 0.0 && uHasNormalMap) colour = unsharpLuma(colour, vUv, false);
     } else if (mode == 2) {   // signed mean curvature, 8-bit grey 128 = 0
-      if (uHasTexture) {
+      if (uHasCurvature) {
         float k = textureLod(uCurvatureMap, vUv, uCurvatureLod).r * 255.0 / 127.5 - 1.0;
         colour = diverging(k * uEmphasis);
       } else colour = lit(uClay, n) * 0.5;
     } else if (mode == 3) {   // accessibility / ambient occlusion
-      colour = uHasTexture ? uClay * texture(uAccessMap, vUv).r : lit(uClay, n) * 0.5;
+      colour = uHasAccess ? uClay * texture(uAccessMap, vUv).r : lit(uClay, n) * 0.5;
     } else if (mode == 4) {   // relief: unsharp-masked normals on a flattened tablet
       // n' = normalize(v + (1 + k)(n - blur(n))): the slow curvature of the tablet (blur) is
       // replaced by the view axis v = (0, 0, -1), and the detail n - blur(n) is amplified, so
@@ -185,7 +188,7 @@ const fragmentShader = /* glsl */ `
     } else if (mode == 6) {   // normals as stored: RGB = (n + 1) / 2
       colour = fromSrgb(nObj * 0.5 + 0.5); // shown as the PNG's own values after sRGB output
     } else if (mode == 7) {   // quality map on a sequential ramp
-      if (uHasTexture) {
+      if (uHasQuality) {
         float q = texture(uQualityMap, vUv).r;
         float span = max(uQualityRange.y - uQualityRange.x, 1e-20);
         colour = q != q ? vec3(0.2) : sequential((q - uQualityRange.x) / span);
@@ -234,7 +237,9 @@ export function createRelightMaterial() {
       uAccessMap: { value: blank },
       uQualityMap: { value: blank },
       uQualityRange: { value: new THREE.Vector2(0, 1) },
-      uHasTexture: { value: false },
+      uHasCurvature: { value: false },
+      uHasAccess: { value: false },
+      uHasQuality: { value: false },
       uTexelSize: { value: new THREE.Vector2(1, 1) },
       uLightDir: { value: new THREE.Vector3(0, 0, -1) },
       uIntensity: { value: 1 },
@@ -267,14 +272,15 @@ export const PART_UNIFORMS = Object.freeze([
   'uCurvatureMap',
   'uCurvatureLod',
   'uAccessMap',
-  'uHasTexture',
+  'uHasCurvature',
+  'uHasAccess',
   'uTexelSize',
   'uSeamDepthMm',
   'uGlossMap', // each face its own scan's measured gloss (worker/photos.py)
   'uHasGlossMap',
   'uGlossScale',
   'uGlossExponent',
-  'uTrustMap', // trust maps are per scan, as quality maps: a face has none of its own
+  'uTrustMap', // each face its own trust map (worker/register/run.py), on its own grid
   'uHasTrust',
 ]);
 
@@ -309,6 +315,11 @@ export function createPartMaterial(base, face, { seamDepthMm }) {
   uniforms.uHasGlossMap.value = Boolean(face.gloss);
   uniforms.uGlossScale.value = face.gloss?.scale ?? 0;
   uniforms.uGlossExponent.value = face.gloss?.exponent ?? 32;
+  // No map of a lazily loaded kind until applyPartShading binds the face's own.
+  uniforms.uHasCurvature.value = false;
+  uniforms.uHasAccess.value = false;
+  uniforms.uTrustMap.value = blank;
+  uniforms.uHasTrust.value = false;
   return new THREE.ShaderMaterial({
     name: 'RelightPartMaterial',
     glslVersion: THREE.GLSL3,
@@ -320,26 +331,40 @@ export function createPartMaterial(base, face, { seamDepthMm }) {
 }
 
 /**
- * The shading-mode maps of one face of a whole tablet: its own curvature and accessibility
- * (quality maps are per scan and not carried over: `baseHas` for the shared one).
- * @param {THREE.ShaderMaterial} m from {@link createPartMaterial}
- * @param {object} face assets.js' face record (`curvature` layers, `accessibility` texture)
- * @param {{mode: string, curvatureScale: number}} shading
- * @param {boolean} baseHas whether the base material has the current mode's map
+ * The modes whose maps must be bound: the main mode and the lens' (enhance.js), once each.
+ * @param {{mode: string, lensMode?: string | null}} shading
+ * @returns {Set<string>}
  */
-export function applyPartShading(m, face, shading, baseHas) {
+export function boundModes(shading) {
+  return new Set([shading.mode, shading.lensMode].filter(Boolean));
+}
+
+/**
+ * The shading-mode maps of one face of a whole tablet (or of one streamed tile): its own
+ * curvature, accessibility and trust map, for the main mode and the lens' mode
+ * (`shading.lensMode`, {@link boundModes}); the quality map is the base material's (shared).
+ * @param {THREE.ShaderMaterial} m from {@link createPartMaterial}
+ * @param {object} face assets.js' face record (`curvature` layers, `accessibility` texture,
+ *   `trust` {texture} or false/null/undefined)
+ * @param {{mode: string, curvatureScale: number, lensMode?: string | null}} shading
+ */
+export function applyPartShading(m, face, shading) {
   const u = m.uniforms;
-  let has = false;
-  if (shading.mode === 'curvature' && face.curvature?.length) {
+  const modes = boundModes(shading);
+  u.uHasCurvature.value = false;
+  u.uHasAccess.value = false;
+  if (modes.has('curvature') && face.curvature?.length) {
     const layer = face.curvature[Math.min(shading.curvatureScale, face.curvature.length - 1)];
     u.uCurvatureMap.value = layer.texture;
     u.uCurvatureLod.value = layer.lod;
-    has = true;
-  } else if (shading.mode === 'accessibility' && face.accessibility) {
-    u.uAccessMap.value = face.accessibility;
-    has = true;
-  } else if (shading.mode === 'quality') {
-    has = baseHas;
+    u.uHasCurvature.value = true;
   }
-  u.uHasTexture.value = has;
+  if (modes.has('accessibility') && face.accessibility) {
+    u.uAccessMap.value = face.accessibility;
+    u.uHasAccess.value = true;
+  }
+  // The trust map is bound whenever loaded (as the base material's): cheap, and the legend
+  // of the lens and of the mode read the same map.
+  u.uHasTrust.value = Boolean(face.trust);
+  if (face.trust) u.uTrustMap.value = face.trust.texture;
 }

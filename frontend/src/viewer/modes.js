@@ -37,13 +37,15 @@ const FILE_OF = {
  * @param {string} mode a shading mode
  * @param {object} assets the loaded-asset record
  * @param {Record<string, string>} [errors] load errors by kind
+ * @param {{normalsNote?: boolean}} [options] normalsNote: also say when the model lacks
+ *   normals.png (false for the lens: the main mode's notice says it already)
  * @returns {string | null}
  */
-export function missingMessage(mode, assets, errors = {}) {
+export function missingMessage(mode, assets, errors = {}, { normalsNote = true } = {}) {
   const need = MODE_NEEDS[mode];
   const names = assets.names;
   const faces = assets.faces ?? [];
-  if (faces.length) return missingOnFaces(mode, assets, errors);
+  if (faces.length) return missingOnFaces(mode, assets, errors, normalsNote);
   const present = {
     normals: Boolean(assets.normals),
     albedo: Boolean(assets.albedo),
@@ -57,7 +59,7 @@ export function missingMessage(mode, assets, errors = {}) {
   if (need !== undefined && !present) notes.push(`This model has no ${file}: the ${mode} view is not available.`);
   else if (errors[need]) notes.push(`Could not load ${file}: ${errors[need]}`);
   else if (LAZY_KINDS[mode] && assets[need] === null) notes.push(`Loading ${file}…`);
-  if (!assets.normals && need !== 'normals') {
+  if (normalsNote && !assets.normals && need !== 'normals') {
     notes.push('No normals.png: lit by the mesh normals, so fine wedges are smoothed away.');
   }
   return notes.length ? notes.join(' ') : null;
@@ -68,7 +70,7 @@ export function missingMessage(mode, assets, errors = {}) {
  * {name, assets: {normals, curvature, accessibility}, normals, albedo}): each face brings its own
  * maps, so the notice names the faces that lack one.
  */
-function missingOnFaces(mode, assets, errors) {
+function missingOnFaces(mode, assets, errors, normalsNote) {
   const need = MODE_NEEDS[mode];
   const faces = assets.faces;
   const has = {
@@ -77,7 +79,7 @@ function missingOnFaces(mode, assets, errors) {
     curvature: (f) => f.assets.curvature.length > 0,
     accessibility: (f) => Boolean(f.assets.accessibility),
     quality: () => assets.names.quality.length > 0,
-    trust: () => Boolean(assets.names.trust),
+    trust: (f) => Boolean(f.assets.trust), // each face's own (worker/register/run.py)
   };
   const notes = [];
   const list = (fs) => fs.map((f) => f.name).join(', ');
@@ -90,7 +92,7 @@ function missingOnFaces(mode, assets, errors) {
     else if (LAZY_KINDS[mode] && assets[need] === null) notes.push(`Loading ${file}…`);
   }
   const flat = faces.filter((f) => !f.normals);
-  if (flat.length && need !== 'normals') {
+  if (normalsNote && flat.length && need !== 'normals') {
     notes.push(
       flat.length === faces.length
         ? 'No normals.png for the faces: lit by the mesh normals, so fine wedges are smoothed away.'
@@ -98,4 +100,38 @@ function missingOnFaces(mode, assets, errors) {
     );
   }
   return notes.length ? notes.join(' ') : null;
+}
+
+/**
+ * What the lens' mode lacks (enhance.js), as a sentence starting "In the lens:", or null when
+ * the lens is off, shows the main mode, or has what it needs.
+ * @param {string | null} lensMode
+ * @param {string} mainMode
+ * @param {object} assets the loaded-asset record
+ * @param {Record<string, string>} [errors]
+ */
+export function lensMissingMessage(lensMode, mainMode, assets, errors = {}) {
+  if (!lensMode || lensMode === mainMode) return null;
+  const note = missingMessage(lensMode, assets, errors, { normalsNote: false });
+  return note ? `In the lens: ${note}` : null;
+}
+
+/**
+ * Why a mode cannot be chosen on this model, or null when it can: a mode whose maps the
+ * model does not have at all (the page disables it in its selects, with this as the reason).
+ * Only trust is decided here: a model without any trust.png (a streamed model, a model made
+ * before worker/trust_assets.py) has nothing to show in it.
+ * @param {string} mode
+ * @param {object} assets the loaded-asset record
+ * @param {{streamed?: boolean}} [options] streamed: the model is streamed (tiles.js)
+ * @returns {string | null}
+ */
+export function unavailableModeReason(mode, assets, { streamed = false } = {}) {
+  if (mode !== 'trust' || !assets) return null;
+  const faces = assets.faces ?? [];
+  const has = faces.length ? faces.some((f) => f.assets.trust) : Boolean(assets.names?.trust);
+  if (has) return null;
+  return streamed
+    ? 'Trust: this streamed model has no trust map (trust.png) for its tiles yet.'
+    : 'Trust: this model has no trust map (trust.png), made by the worker from its quality maps.';
 }

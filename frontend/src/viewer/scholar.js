@@ -11,17 +11,36 @@ import { LENS_MODES } from './enhance.js';
 import { createPicker, pixelSizeFromMesh } from './measure.js';
 import { parseNpy } from './npy.js';
 import { bestLight, rakingSet, shadeCrop } from './rightLight.js';
-import { chainSegments, planeThroughLine, sectionSegments, sectionSvg, toPlane } from './section.js';
-import { distanceUncertaintyMm, sigmaAlongLine, sigmaAt, trustLegend } from './trust.js';
+import { planeToFace, pointsOnOneFace, transformPoint } from './faceGrids.js';
+import { chainSegments, gridSectionSegments, planeThroughLine, sectionSegments, sectionSvg, toPlane } from './section.js';
+import { distanceUncertaintyAxesMm, distanceUncertaintyMm, sigmaAlongLine, sigmaAt, trustLegend } from './trust.js';
 
 const $ = (id) => document.getElementById(id);
 /** Largest crop (texels on a side) the right light reads; larger regions are downsampled. */
 const MAX_CROP_PX = 192;
 const SECTION_COLOUR = 0x00e5ff;
+/** What a section was cut from, as the readout and the SVG's note say it. */
+const SOURCE_TEXT = Object.freeze({
+  heights: 'full-resolution heights',
+  mesh: 'decimated mesh',
+  'heights and mesh': 'full-resolution heights (the decimated mesh for faces without them)',
+});
+
+/** Float32Arrays end to end. */
+function concat(parts) {
+  const out = new Float32Array(parts.reduce((n, p) => n + p.length, 0));
+  let at = 0;
+  for (const p of parts) {
+    out.set(p, at);
+    at += p.length;
+  }
+  return out;
+}
 
 /**
  * @param {ReturnType<import('./viewer.js').createViewer>} viewer
  * @param {{assetUrl: (name: string) => string | null, getPixelSizeUm: () => number | null,
+ *   getHeightUrl?: () => string | null, facePixelSizeUm?: (label: string) => number | null,
  *   baseName: () => string, describe?: () => object}} context
  */
 export function bindScholarTools(viewer, context) {
@@ -94,9 +113,38 @@ export function bindScholarTools(viewer, context) {
     }
     return sigmaGrid.promise;
   }
+  // A whole tablet: each face's own σ_h grid (faces/<label>/uncertainty_um.npy) and pixel
+  // size (the registration's report, else the face's trust.json).
+  const faceGrids = new Map(); // url → Promise<grid>
+  function faceGrid(face, name) {
+    const url = context.assetUrl(face.assets[name]);
+    if (!url) return Promise.resolve(null);
+    if (!faceGrids.has(url)) {
+      faceGrids.set(
+        url,
+        Promise.all([fetchBytes(url), facePixelSize(face)]).then(([buf, pixelSizeUm]) => {
+          const { shape, data } = parseNpy(buf);
+          if (!pixelSizeUm) throw new Error(`the pixel size of the face ${face.name} is unknown`);
+          const values = name === 'uncertainty' ? { sigmaUm: data } : { heightUm: data };
+          return { ...values, rows: shape[0], cols: shape[1], pixelSizeUm };
+        }),
+      );
+    }
+    return faceGrids.get(url);
+  }
+  async function facePixelSize(face) {
+    const fromReport = context.facePixelSizeUm?.(face.name);
+    if (fromReport) return fromReport;
+    const url = context.assetUrl(face.assets.trustMeta);
+    if (!url) return null;
+    const meta = JSON.parse(new TextDecoder().decode(await fetchBytes(url)));
+    return Number(meta.pixel_size_um) || null;
+  }
+  const faces = () => viewer.model?.assets.faces ?? [];
   const uncertainty = {
     /** ± (mm) of the distance between two points, or null without an uncertainty map. */
     async distance(points) {
+      if (faces().length) return wholeTabletDistance(points);
       const g = await loadSigma();
       if (!g) return null;
       const [a, b] = points;
@@ -105,10 +153,34 @@ export function bindScholarTools(viewer, context) {
     },
     /** σ_h (µm) at each sample of a profile, or null. */
     async profile(profile, points) {
+      if (faces().length) {
+        // The profile's own face (ui.js reads its heights the same way).
+        const on = pointsOnOneFace(points, (p) => viewer.faceOfPoint(p), faces());
+        const g = await faceGrid(faces()[on.face], 'uncertainty');
+        return g ? sigmaAlongLine(g, on.points[0], on.points[1], profile.heightUm.length) : null;
+      }
       const g = await loadSigma();
       return g ? sigmaAlongLine(g, points[0], points[1], profile.heightUm.length) : null;
     },
   };
+  /** ± of a distance on a whole tablet: each end's σ_h on its own face, along that face's
+   * viewing axis (trust.js' distanceUncertaintyAxesMm). */
+  async function wholeTabletDistance(points) {
+    const ends = await Promise.all(
+      points.map(async (p) => {
+        const i = viewer.faceOfPoint(p);
+        const face = faces()[i];
+        const g = face ? await faceGrid(face, 'uncertainty') : null;
+        if (!g) return null;
+        // The face's viewing axis (scan-frame z) in the model frame: column 2 of its transform.
+        const m = face.toModel;
+        return { sigmaUm: sigmaAt(g, transformPoint(face.toFace, p)), axis: [m[8], m[9], m[10]], pixelSizeUm: g.pixelSizeUm };
+      }),
+    );
+    if (ends.some((e) => !e)) return null;
+    const pm = distanceUncertaintyAxesMm(points[0], points[1], ends);
+    return Number.isFinite(pm) ? pm : null;
+  }
 
   // --- unsharp masking and the lens ---------------------------------------------------------
   const sliders = { 'unsharp-normals': 'normalUnsharp', 'unsharp-luma': 'lumaUnsharp', 'unsharp-radius': 'radiusPx' };
@@ -190,8 +262,11 @@ export function bindScholarTools(viewer, context) {
   function setTool(next) {
     tool = tool === next ? null : next;
     // A streamed model has no one mesh nor normal map in memory (tiles come and go with the
-    // camera, tiles.js): neither tool has what it cuts or searches.
-    const refused = tool && viewer.model?.tiles ? tool : null;
+    // camera, tiles.js): the best light has nothing to search; a section cuts a streamed
+    // face's full-resolution heights (its rows, by Range reads), not yet a streamed whole
+    // tablet's (its heights are per face).
+    const streamed = viewer.model?.tiles;
+    const refused = tool && streamed && !(tool === 'section' && streamed.heights) ? tool : null;
     if (refused) tool = null;
     $('best-light').setAttribute('aria-pressed', String(tool === 'light'));
     $('section').setAttribute('aria-pressed', String(tool === 'section'));
@@ -205,7 +280,11 @@ export function bindScholarTools(viewer, context) {
     else if (tool === 'section') say('Click the two ends of the section line.');
     if (tool) canvas.classList.add('picking');
     if (refused) {
-      say(`${TOOL_NAMES[refused]}: not available on a streamed (tiled) model yet; its mesh and maps are loaded tile by tile.`);
+      say(
+        refused === 'section'
+          ? 'Section: not available on a streamed whole tablet yet; its heights are per face, each on its own grid.'
+          : `${TOOL_NAMES[refused]}: not available on a streamed (tiled) model yet; its mesh and maps are loaded tile by tile.`,
+      );
     }
   }
   function say(text) {
@@ -341,10 +420,72 @@ export function bindScholarTools(viewer, context) {
     section.object.material.dispose();
     section = null;
   }
-  function cutSection(points) {
+  /** A face model's full-resolution heights (height.npy), cached by URL. */
+  let modelHeights = null; // {url, promise}
+  function loadModelHeights() {
+    const url = context.getHeightUrl?.();
+    if (!url) return Promise.resolve(null);
+    if (modelHeights?.url !== url) {
+      modelHeights = {
+        url,
+        promise: fetchBytes(url).then((buf) => {
+          const { shape, data } = parseNpy(buf);
+          let pixelSizeUm = context.getPixelSizeUm();
+          if (!pixelSizeUm) {
+            const g = viewer.model.mesh.geometry;
+            pixelSizeUm = pixelSizeFromMesh(g.attributes.position.array, g.attributes.uv.array, shape[1]);
+          }
+          return { heightUm: data, rows: shape[0], cols: shape[1], pixelSizeUm };
+        }),
+      };
+    }
+    return modelHeights.promise;
+  }
+
+  /**
+   * The plane's cut of the finest surface at hand (section.js): a face model's height.npy, a
+   * streamed face's rows between the two ends (heightRows.js Range reads, as profiles do), a
+   * whole tablet's faces/<label>/height.npy for each shown face (the mesh for a face without
+   * one), else the decimated mesh. {segments, source: 'heights' | 'mesh' | 'heights and mesh',
+   * pixels: cut grid cells' pixel count}.
+   */
+  async function cutFinest(plane, points) {
+    const model = viewer.model;
+    const streamed = model.tiles?.heights;
+    if (streamed) {
+      const s = streamed.pixelSizeUm;
+      const part = await streamed.reader.gridForSegment(points[0], points[1], s);
+      const row0 = Math.round(((points[0][1] - part.start[1]) * 1000) / s);
+      return { segments: gridSectionSegments(part.grid, plane, { row0 }), source: 'heights', rows: part.grid.rows };
+    }
+    const g = model.mesh.geometry;
+    const mats = Array.isArray(model.mesh.material) ? model.mesh.material : null;
+    const fs = faces();
+    if (fs.length && mats && g.groups.length) {
+      // A whole tablet: only its shown faces are cut, each on its own grid.
+      const shown = g.groups.map((gr, i) => [gr, i]).filter(([gr]) => mats[gr.materialIndex]?.visible !== false);
+      const parts = [];
+      const meshRanges = [];
+      for (const [gr, i] of shown) {
+        const face = fs[i];
+        const grid = face?.assets.height ? await faceGrid(face, 'height') : null;
+        if (grid) parts.push(gridSectionSegments(grid, planeToFace(plane, face.toModel, face.toFace), { toModel: face.toModel }));
+        else meshRanges.push(gr);
+      }
+      if (meshRanges.length) parts.push(sectionSegments(g.attributes.position.array, g.index?.array ?? null, plane, meshRanges));
+      const segments = concat(parts);
+      const source = meshRanges.length === shown.length ? 'mesh' : meshRanges.length ? 'heights and mesh' : 'heights';
+      return { segments, source };
+    }
+    const grid = await loadModelHeights();
+    if (grid) return { segments: gridSectionSegments(grid, plane), source: 'heights' };
+    const ranges = mats && g.groups.length ? g.groups.filter((gr) => mats[gr.materialIndex]?.visible !== false) : null;
+    return { segments: sectionSegments(g.attributes.position.array, g.index?.array ?? null, plane, ranges), source: 'mesh' };
+  }
+
+  let cutting = 0; // the latest cut (an older one finishing late is dropped)
+  async function cutSection(points) {
     clearSection();
-    const mesh = viewer.model.mesh;
-    const g = mesh.geometry;
     const dir = viewer.getCamera().getWorldDirection(new THREE.Vector3()).toArray();
     let plane;
     try {
@@ -352,10 +493,16 @@ export function bindScholarTools(viewer, context) {
     } catch (err) {
       return say(`Section: ${err.message}.`);
     }
-    const mats = Array.isArray(mesh.material) ? mesh.material : null;
-    // A whole tablet: only its shown faces are cut.
-    const ranges = mats && g.groups.length ? g.groups.filter((gr) => mats[gr.materialIndex]?.visible !== false) : null;
-    const segs = sectionSegments(g.attributes.position.array, g.index?.array ?? null, plane, ranges);
+    const ticket = ++cutting;
+    let cut;
+    try {
+      say('Section: cutting…');
+      cut = await cutFinest(plane, points);
+    } catch (err) {
+      return say(`Section: ${err.message}`);
+    }
+    if (ticket !== cutting || !viewer.model) return;
+    const segs = cut.segments;
     if (!segs.length) return say('Section: the plane does not cut the model.');
     const geometry = new THREE.BufferGeometry();
     geometry.setAttribute('position', new THREE.BufferAttribute(segs, 3));
@@ -368,14 +515,15 @@ export function bindScholarTools(viewer, context) {
     const about = context.describe?.() ?? {};
     const svg = sectionSvg(lines, {
       title: `Section of ${about.tablet ?? 'the tablet'}${about.modelId != null ? `, model ${about.modelId} version ${about.modelVersion}` : ''}`,
-      note: `Plane through (${points[0].map((v) => v.toFixed(3)).join(', ')}) and (${points[1].map((v) => v.toFixed(3)).join(', ')}) mm, holding the viewing direction; horizontal: along the line, vertical: depth as seen; 1 unit = 1 mm.${about.licence ? ` Licence: ${about.licence}.` : ''}`,
+      note: `Plane through (${points[0].map((v) => v.toFixed(3)).join(', ')}) and (${points[1].map((v) => v.toFixed(3)).join(', ')}) mm, holding the viewing direction; cut from the ${SOURCE_TEXT[cut.source]}; horizontal: along the line, vertical: depth as seen; 1 unit = 1 mm.${about.licence ? ` Licence: ${about.licence}.` : ''}`,
     });
     section = { remove: viewer.addOverlay(object), object, svg };
     const doc = new DOMParser().parseFromString(svg, 'image/svg+xml').documentElement;
     $('section-chart').replaceChildren(document.importNode(doc, true));
     const [w, d] = extent(lines);
-    $('section-readout').textContent = `${lines.length} outline${lines.length === 1 ? '' : 's'}, ${w.toFixed(2)} × ${d.toFixed(2)} mm`;
+    $('section-readout').textContent = `${lines.length} outline${lines.length === 1 ? '' : 's'}, ${w.toFixed(2)} × ${d.toFixed(2)} mm, from the ${SOURCE_TEXT[cut.source]}`;
     $('section-panel').hidden = false;
+    $('section-panel').dataset.source = cut.source;
     $('section-panel').dataset.widthMm = String(w);
     $('section-panel').dataset.depthMm = String(d);
     say(`Section: ${w.toFixed(2)} mm along the line, ${d.toFixed(2)} mm deep.`);
@@ -441,6 +589,8 @@ export function bindScholarTools(viewer, context) {
       $('section-panel').hidden = true;
       $('light-strip').hidden = true;
       sigmaGrid = null;
+      modelHeights = null;
+      faceGrids.clear();
     },
     /** For tests: the lens modes offered. */
     lensModes: LENS_MODES,

@@ -4,7 +4,10 @@
  * (GigaMesh's and 3DHOP's sections). Pure functions on triangle arrays in mm.
  *
  * The plane is drawn by the reader as a line on screen: it holds the two picked points and
- * the viewing direction, so it cuts the tablet straight down the line as seen.
+ * the viewing direction, so it cuts the tablet straight down the line as seen. Where the
+ * full-resolution heights are at hand (a face model's height.npy, a streamed face's rows, a
+ * whole tablet's faces/<label>/height.npy) the plane cuts them ({@link gridSectionSegments});
+ * the decimated mesh ({@link sectionSegments}) only when they are not.
  */
 import { niceStep } from './profile.js';
 
@@ -77,6 +80,88 @@ export function sectionSegments(positions, index, plane, ranges = null) {
     }
   }
   return Float32Array.from(out);
+}
+
+/**
+ * Segments where the plane cuts a height grid at full resolution (marching squares on the
+ * signed distance to the plane, Lorensen & Cline 1987 in 2-D): the surface between four
+ * neighbouring pixels, each at (c·s, r·s, −h)/1000 mm (SCAN_BUNDLE.md), crosses the plane
+ * where the distance changes sign along the cell's edges, at the linear interpolation of the
+ * two pixels. A cell with a pixel off the tablet (NaN) is not cut (no guessing across holes).
+ * A cell crossed on all four edges (a saddle) is split by the sign at its centre (the mean of
+ * its corners). Same output as {@link sectionSegments}; an edge's point is computed from its
+ * lower pixel index, so the two cells sharing it give bit-identical points.
+ * @param {{heightUm: ArrayLike<number>, rows: number, cols: number, pixelSizeUm: number}} grid
+ * @param {{origin: number[], normal: number[]}} plane in the grid's (scan) frame, mm
+ * @param {{row0?: number, toModel?: ArrayLike<number> | null}} [options] row0: the grid's
+ *   first row in the full image (a block of rows read by heightRows.js); toModel: a 4×4
+ *   column-major matrix taking the output to the model's frame (a whole tablet's face)
+ * @returns {Float32Array}
+ */
+export function gridSectionSegments(grid, plane, { row0 = 0, toModel = null } = {}) {
+  const { heightUm, rows, cols, pixelSizeUm } = grid;
+  if (!(pixelSizeUm > 0)) throw new RangeError(`pixelSizeUm must be > 0, got ${pixelSizeUm}`);
+  if (heightUm.length !== rows * cols) throw new RangeError(`heightUm has ${heightUm.length} values, expected ${rows * cols}`);
+  const s = pixelSizeUm / 1000;
+  const [ox, oy, oz] = plane.origin;
+  const [nx, ny, nz] = plane.normal;
+  const f = new Float64Array(rows * cols);
+  for (let r = 0; r < rows; r++) {
+    const y = (r + row0) * s - oy;
+    for (let c = 0; c < cols; c++) {
+      const i = r * cols + c;
+      f[i] = nx * (c * s - ox) + ny * y + nz * (-heightUm[i] / 1000 - oz); // NaN off the tablet
+    }
+  }
+  const out = [];
+  const point = (i0, j0) => {
+    const [i, j] = i0 < j0 ? [i0, j0] : [j0, i0];
+    const t = f[i] / (f[i] - f[j]);
+    const ri = Math.floor(i / cols);
+    const rj = Math.floor(j / cols);
+    const ci = i - ri * cols;
+    const cj = j - rj * cols;
+    const p = [
+      (ci + t * (cj - ci)) * s,
+      (ri + t * (rj - ri) + row0) * s,
+      -(heightUm[i] + t * (heightUm[j] - heightUm[i])) / 1000,
+    ];
+    const q = toModel ? apply(toModel, p) : p;
+    out.push(q[0], q[1], q[2]);
+  };
+  for (let r = 0; r + 1 < rows; r++) {
+    for (let c = 0; c + 1 < cols; c++) {
+      // Corners in turn round the cell: top-left, top-right, bottom-right, bottom-left.
+      const k = [r * cols + c, r * cols + c + 1, (r + 1) * cols + c + 1, (r + 1) * cols + c];
+      const v = k.map((i) => f[i]);
+      if (!v.every(Number.isFinite)) continue;
+      const pos = v.map((x) => x >= 0); // a pixel on the plane counts as on its positive side
+      const crossed = [0, 1, 2, 3].filter((e) => pos[e] !== pos[(e + 1) % 4]);
+      if (crossed.length === 2) {
+        point(k[crossed[0]], k[(crossed[0] + 1) % 4]);
+        point(k[crossed[1]], k[(crossed[1] + 1) % 4]);
+      } else if (crossed.length === 4) {
+        const centre = (v[0] + v[1] + v[2] + v[3]) / 4 >= 0;
+        // Centre on the side of corners 0 and 2: they join through it, and corners 1 and 3 are
+        // cut off, each by the two edges next to it (edges 0, 1 and 2, 3; edge e runs from
+        // corner e to e + 1); else corners 0 and 2 are (edges 3, 0 and 1, 2).
+        const pairs = centre === pos[0] ? [[0, 1], [2, 3]] : [[3, 0], [1, 2]];
+        for (const [e1, e2] of pairs) {
+          point(k[e1], k[(e1 + 1) % 4]);
+          point(k[e2], k[(e2 + 1) % 4]);
+        }
+      }
+    }
+  }
+  return Float32Array.from(out);
+}
+
+function apply(m, [x, y, z]) {
+  return [
+    m[0] * x + m[4] * y + m[8] * z + m[12],
+    m[1] * x + m[5] * y + m[9] * z + m[13],
+    m[2] * x + m[6] * y + m[10] * z + m[14],
+  ];
 }
 
 /**

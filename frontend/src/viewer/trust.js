@@ -93,6 +93,34 @@ export function distanceUncertaintyMm(a, b, sigmaAUm, sigmaBUm, pixelSizeUm) {
 }
 
 /**
+ * The ± of a distance whose ends lie on faces seen along different axes (a whole tablet):
+ * each end's height error moves it along its own face's viewing axis z_k, changing the
+ * distance by |ê·z_k|·σ_k (ê the unit vector a → b); its position on that face's grid, known
+ * to half a pixel, by √(1 − (ê·z_k)²)·s_k/2. The ends add (worst case). With both axes the
+ * model's z and one pixel size this is {@link distanceUncertaintyMm}.
+ * @param {number[]} a point in mm
+ * @param {number[]} b point in mm
+ * @param {{sigmaUm: number, axis: number[], pixelSizeUm: number}[]} ends σ_h, the face's
+ *   unit viewing axis in the model frame, and its pixel size, at a and at b
+ * @returns {number} ± in mm (NaN when an end has no σ)
+ */
+export function distanceUncertaintyAxesMm(a, b, ends) {
+  const d = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+  const len = Math.hypot(...d);
+  let um = 0;
+  for (const { sigmaUm, axis, pixelSizeUm } of ends) {
+    if (!(len > 0)) {
+      um += sigmaUm;
+      continue;
+    }
+    const n = Math.hypot(...axis) || 1;
+    const c = Math.min(1, Math.abs((d[0] * axis[0] + d[1] * axis[1] + d[2] * axis[2]) / (len * n)));
+    um += c * sigmaUm + Math.sqrt(1 - c * c) * (pixelSizeUm / 2);
+  }
+  return um / 1000;
+}
+
+/**
  * σ_h along a profile: one value per sample, on the same line as the heights.
  * @param {{sigmaUm: Float32Array, cols: number, rows: number, pixelSizeUm: number}} grid
  * @param {number[]} startMm
@@ -133,4 +161,41 @@ export function formatDistance(mm, pmMm) {
   if (!Number.isFinite(pmMm)) return `${mm.toFixed(2)} mm`;
   if (pmMm < 0.1) return `${mm.toFixed(2)} mm ± ${fmtUm(pmMm * 1000)}`;
   return `${mm.toFixed(2)} ± ${pmMm.toFixed(2)} mm`;
+}
+
+/**
+ * One trust.json for a whole tablet from its faces' own (worker/register/run.py writes each
+ * face's on the same legend tops): the share of each source class over the whole tablet (each
+ * face's shares weighted by its tablet pixels, `pixels`; equally when a face does not say) and
+ * the largest legend tops (the same on every face made by the registration).
+ * @param {object[]} metas the faces' trust.json
+ * @returns {object} a trust.json as trustLegend reads it
+ */
+export function mergeTrustMeta(metas) {
+  if (!metas.length) return {};
+  const weights = metas.map((m) => (Number(m.pixels) > 0 ? Number(m.pixels) : 1));
+  const total = weights.reduce((a, b) => a + b, 0);
+  const classFraction = {};
+  for (const code of Object.keys(TRUST_CLASSES)) {
+    let share = 0;
+    let known = false;
+    metas.forEach((m, i) => {
+      const f = m.class_fraction?.[code];
+      if (Number.isFinite(f)) {
+        share += f * weights[i];
+        known = true;
+      }
+    });
+    if (known) classFraction[code] = share / total;
+  }
+  const top = (key) => {
+    const v = metas.map((m) => Number(m[key])).filter((x) => x > 0);
+    return v.length ? Math.max(...v) : undefined;
+  };
+  return {
+    class_fraction: classFraction,
+    disagreement_scale_um: top('disagreement_scale_um'),
+    uncertainty_scale_um: top('uncertainty_scale_um'),
+    faces: metas.length,
+  };
 }

@@ -16,6 +16,8 @@ import { fetchBytes } from './assets.js';
 import { unavailableViewReason } from './views.js';
 import { fmtUm, formatDistance, profileUncertainty } from './trust.js';
 import { describeEnhance } from './enhance.js';
+import { unavailableModeReason } from './modes.js';
+import { pointsOnOneFace } from './faceGrids.js';
 
 const $ = (id) => document.getElementById(id);
 
@@ -65,6 +67,12 @@ export function bindViewerUi(viewer, context) {
     viewer.setProjection(viewer.projection === 'orthographic' ? 'perspective' : 'orthographic');
   }
 
+  /** Why a mode cannot be chosen on the model in view (modes.js), or null. */
+  function modeUnavailable(mode) {
+    const m = viewer.model;
+    return m ? unavailableModeReason(mode, m.assets, { streamed: Boolean(m.tiles) }) : null;
+  }
+
   // --- measuring --------------------------------------------------------------------------
   let tool = null; // 'distance' | 'profile' | null
   let lastProfile = null;
@@ -112,13 +120,21 @@ export function bindViewerUi(viewer, context) {
     }
   }
   let heightGrid = null; // {url, grid}
-  async function loadHeightGrid() {
-    const url = context.getHeightUrl();
-    if (!url) throw new Error('this model has no height.npy, so no profile can be drawn');
+  async function loadHeightGrid(face = null) {
+    // A whole tablet: the face's own heights (faces/<label>/height.npy) and pixel size.
+    const url = face ? context.assetUrl?.(face.assets.height) : context.getHeightUrl();
+    if (!url) {
+      throw new Error(
+        face
+          ? `the face ${face.name} has no height.npy in this whole tablet, so no profile can be drawn`
+          : 'this model has no height.npy, so no profile can be drawn',
+      );
+    }
     if (heightGrid?.url === url) return heightGrid.grid;
     setReadout('Loading height.npy…');
     const { shape, data } = parseNpy(await fetchBytes(url));
-    let pixelSizeUm = context.getPixelSizeUm();
+    let pixelSizeUm = face ? context.facePixelSizeUm?.(face.name) : context.getPixelSizeUm();
+    if (!pixelSizeUm && face) throw new Error(`the pixel size of the face ${face.name} is unknown`);
     if (!pixelSizeUm) {
       const g = viewer.model.mesh.geometry;
       pixelSizeUm = pixelSizeFromMesh(g.attributes.position.array, g.attributes.uv.array, shape[1]);
@@ -135,6 +151,13 @@ export function bindViewerUi(viewer, context) {
         const part = await streamed.reader.gridForSegment(points[0], points[1], streamed.pixelSizeUm);
         lastProfile = sampleProfile(part.grid, part.start, part.end);
         heightGrid = { url: null, grid: { pixelSizeUm: streamed.pixelSizeUm } };
+      } else if (viewer.model?.assets.faces?.length) {
+        // A whole tablet: the line on one face, cut from that face's own full-resolution
+        // heights in its scan frame (faceGrids.js), as on the face model.
+        const on = pointsOnOneFace(points, (p) => viewer.faceOfPoint(p), viewer.model.assets.faces);
+        const face = viewer.model.assets.faces[on.face];
+        lastProfile = sampleProfile(await loadHeightGrid(face), on.points[0], on.points[1]);
+        lastProfile.face = face.name;
       } else {
         lastProfile = sampleProfile(await loadHeightGrid(), points[0], points[1]);
       }
@@ -146,7 +169,8 @@ export function bindViewerUi(viewer, context) {
       $('profile-panel').hidden = false;
       const u = sigmaUm ? profileUncertainty(lastProfile.heightUm, sigmaUm) : null;
       const pm = u ? `, heights ± ${fmtUm(u.medianUm)} (median; up to ${fmtUm(u.maxUm)})` : '';
-      setReadout(`Profile: ${lastProfile.lengthMm.toFixed(2)} mm, ${lastProfile.heightUm.length} samples${pm}`);
+      const on = lastProfile.face ? ` on ${lastProfile.face}` : '';
+      setReadout(`Profile${on}: ${lastProfile.lengthMm.toFixed(2)} mm, ${lastProfile.heightUm.length} samples${pm}`);
     } catch (err) {
       setReadout(`Profile: ${err.message}`);
     }
@@ -264,7 +288,9 @@ export function bindViewerUi(viewer, context) {
         viewer.setLight({ gloss: l.gloss > 0 ? 0 : 0.5 });
         break;
       case 'mode':
-        if (arg === 'curvature' && viewer.shading.mode === 'curvature') {
+        if (modeUnavailable(arg)) {
+          setReadout(modeUnavailable(arg)); // the select's option is disabled for that reason
+        } else if (arg === 'curvature' && viewer.shading.mode === 'curvature') {
           const n = $('curvature-scale').options.length || 1;
           viewer.setShading({ curvatureScale: (viewer.shading.curvatureScale + 1) % n });
         } else {
@@ -342,6 +368,14 @@ export function bindViewerUi(viewer, context) {
     $('ambient').value = String(l.ambient);
     $('gloss').value = String(l.gloss);
     const s = viewer.shading;
+    // Modes the model has nothing for are disabled, their reason in the option's title.
+    for (const select of [$('mode'), $('lens-mode')]) {
+      for (const option of select.options) {
+        const why = modeUnavailable(option.value);
+        option.disabled = Boolean(why);
+        option.title = why ?? '';
+      }
+    }
     $('mode').value = s.mode;
     $('exaggeration').value = String(s.exaggeration);
     $('curvature-scale-row').hidden = s.mode !== 'curvature';

@@ -17,14 +17,15 @@ import {
   worldLightToCameraAngles,
 } from './light.js';
 import { createMarks, pickPoint, projectPoint } from './marks.js';
-import { LAZY_KINDS, missingMessage as missingMessageOf } from './modes.js';
-import { applyPartShading, createPartMaterial, createRelightMaterial, MODE_INDEX } from './material.js';
+import { LAZY_KINDS, lensMissingMessage, missingMessage as missingMessageOf } from './modes.js';
+import { applyPartShading, boundModes, createPartMaterial, createRelightMaterial, MODE_INDEX } from './material.js';
 import { defaultViewState, SHADING_MODES } from './permalink.js';
 import { applyHiddenParts, createPartToggles, hiddenParts } from './parts.js';
 import { availableViews, canonicalView } from './views.js';
 import { applyEnhance, defaultEnhance } from './enhance.js';
 import { TRUST_LAYERS } from './trust.js';
 import { tilesIndexUrl } from './tilesIndex.js';
+import { groupOfPoint, groupVertexSpans } from './faceGrids.js';
 
 const PERSPECTIVE_FOV_DEG = 30;
 
@@ -230,6 +231,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
    * canvas (x right, y down from its top-left corner).
    */
   function setEnhance(next) {
+    const lensMode = state.enhance.lens?.mode ?? null;
     state.enhance = applyEnhance(
       material.uniforms,
       { ...state.enhance, ...next },
@@ -237,6 +239,8 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       MODE_INDEX,
     );
     if (state.enhance.lens) ensureKind(LAZY_KINDS[state.enhance.lens.mode]);
+    // The lens' mode may need maps the main mode does not bind.
+    if (lensMode !== (state.enhance.lens?.mode ?? null)) applyShading();
     invalidate();
     onChange('enhance');
   }
@@ -252,31 +256,37 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     u.uMode.value = MODE_INDEX[s.mode];
     u.uEmphasis.value = s.exaggeration;
     const a = model?.assets;
-    let has = false;
-    if (s.mode === 'curvature') {
+    // The maps of the main mode and of the lens' mode (enhance.js: any mode in the lens).
+    const bound = { ...s, lensMode: state.enhance.lens?.mode ?? null };
+    const modes = boundModes(bound);
+    u.uHasCurvature.value = false;
+    u.uHasAccess.value = false;
+    u.uHasQuality.value = false;
+    if (modes.has('curvature')) {
       const layers = a?.curvature ?? [];
       const layer = layers[Math.min(s.curvatureScale, layers.length - 1)];
       if (layer) {
         u.uCurvatureMap.value = layer.texture;
         u.uCurvatureLod.value = layer.lod;
-        has = true;
+        u.uHasCurvature.value = true;
       }
-    } else if (s.mode === 'accessibility' && a?.accessibility) {
+    }
+    if (modes.has('accessibility') && a?.accessibility) {
       u.uAccessMap.value = a.accessibility;
-      has = true;
-    } else if (s.mode === 'quality' && a?.quality?.length) {
+      u.uHasAccess.value = true;
+    }
+    if (modes.has('quality') && a?.quality?.length) {
       const q = a.quality.find((m) => m.name === s.quality) ?? a.quality[0];
       u.uQualityMap.value = q.texture;
       u.uQualityRange.value.set(q.range[0], q.range[1]);
-      has = true;
+      u.uHasQuality.value = true;
     }
-    u.uHasTexture.value = has;
     // The trust map is bound whenever it is loaded: the lens may show it over another mode.
-    u.uHasTrust.value = Boolean(a?.trust);
-    if (a?.trust) u.uTrustMap.value = a.trust.texture;
+    u.uHasTrust.value = Boolean(a?.trust?.texture);
+    if (a?.trust?.texture) u.uTrustMap.value = a.trust.texture;
     u.uTrustLayer.value = Math.max(0, TRUST_LAYERS.indexOf(s.trustLayer));
-    model?.tiles?.applyShading(s);
-    for (const [i, m] of (model?.partMaterials ?? []).entries()) applyPartShading(m, a.faces[i], s, has);
+    model?.tiles?.applyShading(bound);
+    for (const [i, m] of (model?.partMaterials ?? []).entries()) applyPartShading(m, a.faces[i], bound);
   }
 
   /**
@@ -284,7 +294,12 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
    * @returns {string | null}
    */
   function missingMessage() {
-    return model ? missingMessageOf(state.shading.mode, model.assets, model.errors) : null;
+    if (!model) return null;
+    const notes = [
+      missingMessageOf(state.shading.mode, model.assets, model.errors),
+      lensMissingMessage(state.enhance.lens?.mode ?? null, state.shading.mode, model.assets, model.errors),
+    ];
+    return notes.filter(Boolean).join(' ') || null;
   }
 
   // --- camera -----------------------------------------------------------------------------
@@ -536,6 +551,19 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     return hit;
   }
 
+  /**
+   * The index (in `model.assets.faces`) of the shown face of a whole tablet a model point lies
+   * on (faceGrids.js: the face of its nearest vertex), or -1 (a one-mesh model, no face).
+   * @param {number[]} point mm
+   */
+  function faceOfPoint(point) {
+    if (!model?.parts || !model.assets.faces?.length) return -1;
+    const g = model.mesh.geometry;
+    model.faceSpans ??= groupVertexSpans(g.index?.array ?? null, g.groups);
+    const names = model.parts.names;
+    return groupOfPoint(g.attributes.position.array, model.faceSpans, point, (i) => model.parts.isVisible(names[i]));
+  }
+
   /** Draw an object over the model (annotation regions); returns a function removing it. */
   function addOverlay(object) {
     scene.add(object);
@@ -750,6 +778,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     lightWorld,
     setState,
     pick,
+    faceOfPoint,
     addOverlay,
     project,
     mmPerPixel,

@@ -1,5 +1,6 @@
 import { describe, expect, it } from 'vitest';
-import { applyEnhance, checkEnhance, defaultEnhance, describeEnhance, lensToDevice } from '../../src/viewer/enhance.js';
+import { applyEnhance, checkEnhance, defaultEnhance, describeEnhance, LENS_MODES, lensToDevice } from '../../src/viewer/enhance.js';
+import { SHADING_MODES } from '../../src/viewer/permalink.js';
 
 const uniforms = () => {
   const vec = { x: 0, y: 0, set(x, y) { this.x = x; this.y = y; } };
@@ -13,7 +14,12 @@ describe('enhancements and the lens', () => {
     const e = checkEnhance({ normalUnsharp: 20, lumaUnsharp: -1, radiusPx: 0 });
     expect(e).toMatchObject({ normalUnsharp: 8, lumaUnsharp: 0, radiusPx: 1, lens: null });
     expect(() => checkEnhance({ normalUnsharp: NaN })).toThrow(/normalUnsharp/);
-    expect(() => checkEnhance({ lens: { mode: 'curvature', x: 1, y: 1, radius: 5 } })).toThrow(/lens mode/);
+    expect(() => checkEnhance({ lens: { mode: 'wireframe', x: 1, y: 1, radius: 5 } })).toThrow(/lens mode/);
+    // Every shading mode can be shown in the lens, the ones with maps of their own included.
+    expect(LENS_MODES).toEqual(SHADING_MODES);
+    for (const mode of ['curvature', 'accessibility', 'quality']) {
+      expect(checkEnhance({ lens: { mode, x: 1, y: 1, radius: 5 } }).lens.mode).toBe(mode);
+    }
     expect(() => checkEnhance({ lens: { mode: 'trust', x: 1, y: 1, radius: 0 } })).toThrow(/radius/);
   });
 

@@ -63,10 +63,12 @@ describe('permalink state', () => {
   });
 
   it('names a lens it cannot use and keeps the rest', () => {
-    const { state, ignored } = decodeViewState('#mode=clay&un=2&lz=curvature&lx=1&ly=2&lr=30');
+    const { state, ignored } = decodeViewState('#mode=clay&un=2&lz=wireframe&lx=1&ly=2&lr=30');
     expect(ignored).toEqual(['lens']);
     expect(state.enhance).toEqual({ normalUnsharp: 2, lumaUnsharp: 0, radiusPx: 8, lens: null });
     expect(decodeViewState('#un=99').ignored).toEqual(['un']);
+    // A lens on a mode with maps of its own comes back.
+    expect(decodeViewState('#lz=curvature&lx=1&ly=2&lr=30').state.enhance.lens).toEqual({ mode: 'curvature', x: 1, y: 2, radius: 30 });
   });
 
   it('gives the defaults for an empty fragment', () => {

@@ -1,5 +1,5 @@
 import { describe, expect, it } from 'vitest';
-import { chainSegments, planeThroughLine, sectionSegments, sectionSvg, toPlane } from '../../src/viewer/section.js';
+import { chainSegments, gridSectionSegments, planeThroughLine, sectionSegments, sectionSvg, toPlane } from '../../src/viewer/section.js';
 
 /** An axis-aligned box (12 triangles, indexed) of the given size centred at the origin. */
 function box([sx, sy, sz]) {
@@ -91,5 +91,87 @@ describe('sections', () => {
     expect(svg).toContain('P1 &lt;obverse&gt; &amp; co');
     const rect = svg.match(/<rect x="[\d.]+" y="[\d.]+" width="([\d.]+)"/);
     expect(Number(rect[1])).toBe(5);
+  });
+});
+
+describe('sections of the full-resolution heights', () => {
+  /** A rows × cols grid of heights h(r, c) µm, 1 mm pixels unless given. */
+  const grid = (rows, cols, h, pixelSizeUm = 1000) => {
+    const heightUm = new Float32Array(rows * cols);
+    for (let r = 0; r < rows; r++) for (let c = 0; c < cols; c++) heightUm[r * cols + c] = h(r, c);
+    return { heightUm, rows, cols, pixelSizeUm };
+  };
+  const length = (line) => line.slice(1).reduce((acc, p, i) => acc + Math.hypot(...p.map((v, k) => v - line[i][k])), 0);
+
+  it('a vertical plane cuts a flat face along the whole grid, at the plane', () => {
+    const g = grid(5, 11, () => 0);
+    const lines = chainSegments(gridSectionSegments(g, { origin: [3.5, 0, 0], normal: [1, 0, 0] }));
+    expect(lines).toHaveLength(1);
+    expect(length(lines[0])).toBeCloseTo(4, 5); // rows 0…4 at 1 mm
+    for (const p of lines[0]) expect(p[0]).toBeCloseTo(3.5, 5);
+  });
+
+  it('a level plane cuts a slope where the height equals its depth', () => {
+    // h = 100·c µm (0.1 mm per column of 50 µm), plane z = −0.5 mm: at h = 500 µm, c = 5.
+    const g = grid(8, 20, (r, c) => 100 * c, 50);
+    const segs = gridSectionSegments(g, { origin: [0, 0, -0.5], normal: [0, 0, 1] });
+    const lines = chainSegments(segs);
+    expect(lines).toHaveLength(1);
+    for (const p of lines[0]) {
+      expect(p[0]).toBeCloseTo(5 * 0.05, 6);
+      expect(p[2]).toBeCloseTo(-0.5, 6);
+    }
+    expect(length(lines[0])).toBeCloseTo(7 * 0.05, 6);
+  });
+
+  it('does not cut across holes, honours row0 and takes its points to the model frame', () => {
+    const g = grid(6, 9, (r, c) => (c === 4 ? Number.NaN : 0));
+    const plane = { origin: [0, 2.5 + 10, 0], normal: [0, 1, 0] }; // y = 12.5 mm: row 12.5
+    const toModel = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 100, 0, 0, 1]; // +100 mm in x
+    const lines = chainSegments(gridSectionSegments(g, plane, { row0: 10, toModel }));
+    expect(lines).toHaveLength(2); // columns 0–3 and 5–8, the hole between them
+    const xs = lines.flat().map((p) => p[0]).sort((a, b) => a - b);
+    expect(xs[0]).toBeCloseTo(100, 6);
+    expect(xs[xs.length - 1]).toBeCloseTo(108, 6);
+    for (const p of lines.flat()) expect(p[1]).toBeCloseTo(12.5, 6);
+  });
+
+  it('splits a saddle cell by its centre, cutting off the corners on the other side', () => {
+    // Level plane z = 0: the signed distance is −h/1000 mm. Row-major h = −1, 1, 2, −1 mm,
+    // so round the cell (top-left, top-right, bottom-right, bottom-left) +1, −1, +1, −2:
+    // a saddle whose centre (−0.25) is negative, so the two positive corners are cut off.
+    const g = { heightUm: Float32Array.from([-1000, 1000, 2000, -1000]), rows: 2, cols: 2, pixelSizeUm: 1000 };
+    const segs = Array.from(gridSectionSegments(g, { origin: [0, 0, 0], normal: [0, 0, 1] }));
+    expect(segs.length).toBe(12); // two segments
+    const ends = [segs.slice(0, 6), segs.slice(6)].map((q) => [q.slice(0, 3), q.slice(3)]);
+    // The top-left corner (0, 0) is cut off by the top edge (y = 0) and the left edge (x = 0).
+    const cutsTopLeft = ends.some(([a, b]) => [a, b].some((p) => p[1] === 0) && [a, b].some((p) => p[0] === 0));
+    expect(cutsTopLeft).toBe(true);
+    for (const [a, b] of ends) for (const p of [a, b]) expect(p[2]).toBeCloseTo(0, 6);
+  });
+
+  it('agrees with the cut of the same surface triangulated at full resolution', () => {
+    const rows = 40;
+    const cols = 60;
+    const s = 100; // µm
+    const g = grid(rows, cols, (r, c) => 800 * Math.exp(-((c - 30) ** 2 + (r - 20) ** 2) / 200) + 5 * c, s);
+    const positions = new Float32Array(rows * cols * 3);
+    for (let r = 0; r < rows; r++) {
+      for (let c = 0; c < cols; c++) positions.set([(c * s) / 1000, (r * s) / 1000, -g.heightUm[r * cols + c] / 1000], 3 * (r * cols + c));
+    }
+    const index = [];
+    for (let r = 0; r + 1 < rows; r++) {
+      for (let c = 0; c + 1 < cols; c++) {
+        const a = r * cols + c;
+        index.push(a, a + cols, a + 1, a + 1, a + cols, a + cols + 1);
+      }
+    }
+    const plane = planeThroughLine([0.3, 0.4, -0.2], [5.5, 3.1, -0.2], [0.2, -0.1, 1]);
+    const fromGrid = chainSegments(gridSectionSegments(g, plane));
+    const fromMesh = chainSegments(sectionSegments(positions, Uint32Array.from(index), plane));
+    expect(fromGrid).toHaveLength(1);
+    const lg = length(fromGrid[0]);
+    expect(lg).toBeGreaterThan(4);
+    expect(Math.abs(lg - length(fromMesh[0])) / lg).toBeLessThan(0.01);
   });
 });

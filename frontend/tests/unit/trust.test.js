@@ -1,8 +1,10 @@
 import { describe, expect, it } from 'vitest';
 import {
+  distanceUncertaintyAxesMm,
   distanceUncertaintyMm,
   fmtUm,
   formatDistance,
+  mergeTrustMeta,
   profileUncertainty,
   sigmaAlongLine,
   sigmaAt,
@@ -84,5 +86,45 @@ describe('trust: the ± of measurements', () => {
     expect(trustLegend('disagreement', meta).hi).toBe('≥ 50 µm');
     expect(TRUST_LAYERS).toEqual(['sources', 'uncertainty', 'disagreement']);
     expect(() => trustLegend('bogus')).toThrow(RangeError);
+  });
+});
+
+describe('trust of a whole tablet', () => {
+  it('weighs each face\'s class shares by its tablet pixels and keeps the largest tops', () => {
+    const m = mergeTrustMeta([
+      { pixels: 300, class_fraction: { 1: 1, 2: 0, 3: 0, 4: 0, 5: 0 }, uncertainty_scale_um: 5, disagreement_scale_um: 20 },
+      { pixels: 100, class_fraction: { 1: 0, 2: 0, 3: 1, 4: 0, 5: 0 }, uncertainty_scale_um: 10, disagreement_scale_um: 20 },
+    ]);
+    expect(m.class_fraction['1']).toBeCloseTo(0.75, 12);
+    expect(m.class_fraction['3']).toBeCloseTo(0.25, 12);
+    expect(m.uncertainty_scale_um).toBe(10);
+    expect(m.disagreement_scale_um).toBe(20);
+    expect(m.faces).toBe(2);
+    // The legend reads it as a face model's trust.json.
+    const legend = trustLegend('sources', m);
+    expect(legend.entries[2].fraction).toBeCloseTo(0.25, 12);
+    expect(trustLegend('uncertainty', m).hi).toBe('≥ 10 µm');
+    expect(mergeTrustMeta([])).toEqual({});
+  });
+});
+
+describe('the ± of a distance across faces', () => {
+  it('is the face model\'s ± when both ends are seen along z, and follows each face\'s axis', () => {
+    const a = [1, 2, -0.5];
+    const b = [4, 6, -1.7];
+    const z = [0, 0, 1];
+    const same = distanceUncertaintyAxesMm(a, b, [
+      { sigmaUm: 3, axis: z, pixelSizeUm: 50 },
+      { sigmaUm: 7, axis: z, pixelSizeUm: 50 },
+    ]);
+    expect(same).toBeCloseTo(distanceUncertaintyMm(a, b, 3, 7, 50), 12);
+    // A 10 mm line along x, its end b on a face seen along x (an edge): b's height error
+    // lies along the line (all of σ_b counts), a's across it (none of σ_a does).
+    const pm = distanceUncertaintyAxesMm([0, 0, 0], [10, 0, 0], [
+      { sigmaUm: 100, axis: z, pixelSizeUm: 40 },
+      { sigmaUm: 5, axis: [-1, 0, 0], pixelSizeUm: 40 },
+    ]);
+    expect(pm).toBeCloseTo((20 + 5) / 1000, 12);
+    expect(Number.isNaN(distanceUncertaintyAxesMm(a, b, [{ sigmaUm: NaN, axis: z, pixelSizeUm: 50 }, { sigmaUm: 1, axis: z, pixelSizeUm: 50 }]))).toBe(true);
   });
 });

@@ -236,7 +236,7 @@ def make_model_dir(out: Path, *, seed: int = 0, tint: float = 0.0) -> ModelFacts
         json.dumps(
             {
                 "pixel_size_um": PIXEL_SIZE_UM,
-                "image_size": [WIDTH_PX, HEIGHT_PX],
+                "image_size": {"width": WIDTH_PX, "height": HEIGHT_PX},
                 "source": "synthetic browser-test fixture",
             }
         )

@@ -331,7 +331,9 @@ def test_section_outline_and_svg(scholar_page, tools, trust_library):
     # one picked point to the other... and on to the rims of the 48 mm face.
     assert 47.0 <= width <= 48.5, width
     depth = float(panel.get_attribute("data-depth-mm"))
-    assert 1.0 < depth < 3.0, depth  # the 2 mm pillow, as the decimated mesh has it
+    assert 1.0 < depth < 3.0, depth  # the 2 mm pillow
+    # Cut from height.npy, not the decimated mesh (test_browser_scholar_whole.py compares it).
+    assert panel.get_attribute("data-source") == "heights"
     # One cut through a height field: one polyline (the triangles' segments joined).
     assert page.locator("#section-readout").inner_text().startswith("1 outline,")
     assert page.locator("#section-chart svg path").count() == 1

@@ -269,20 +269,37 @@ def test_profile_reads_only_the_rows_it_touches(tiled_page, tiled, tools):
     assert not errors, errors
 
 
-def test_section_and_best_light_say_they_wait_for_a_whole_mesh(tiled_page, tiled, tools):
-    """A streamed model has no one mesh nor normal map in memory: the section and best-light
-    tools say so when chosen (they used to throw on the second click, or blame a missing
-    normals.png the model has), and pick nothing."""
+def test_section_reads_rows_and_best_light_says_it_waits_for_a_whole_mesh(tiled_page, tiled, tools):
+    """A streamed face is cut from its full-resolution heights, the rows between the two ends
+    read by HTTP Range as a profile reads them (scholar.js); the best-light tool, which needs
+    one normal map in memory, says so when chosen and picks nothing. Its trust mode (no trust
+    map for tiles yet) is disabled, with the reason."""
     page, errors = tiled_page
     page.evaluate("() => window.hammurabi.viewer.resetView()")
     wait_streamed(page)
     wx, wy = tiled.wedge_mm
     page.locator("#section").click()
-    assert page.locator("#section").get_attribute("aria-pressed") == "false"
-    assert "streamed" in page.locator("#readout").inner_text()
+    assert page.locator("#section").get_attribute("aria-pressed") == "true"
     for p in ([wx - 3, wy, 0.0], [wx + 3, wy, 0.0]):
         page.mouse.click(*tools.screen_of(page, p))
-    assert page.locator("#section-panel").is_hidden()
+    panel = page.locator("#section-panel")
+    panel.wait_for(state="visible")
+    assert panel.get_attribute("data-source") == "heights"
+    # The plane holds the view's axis: the row's heights from rim to rim of the tablet.
+    width = float(panel.get_attribute("data-width-mm"))
+    s_mm = tiled.pixel_size_um / 1000
+    row = np.load(tiled.dir / "height.npy", mmap_mode="r")[int(wy / s_mm)]
+    cols = np.flatnonzero(np.isfinite(row))
+    assert width == pytest.approx((cols[-1] - cols[0]) * s_mm, abs=3 * s_mm), width
+    page.locator("#section-close").click()
+    page.locator("#section").click()  # off
+    trust = page.locator("#mode option[value='trust']")
+    assert trust.is_disabled() and "streamed" in trust.get_attribute("title")
+    assert page.locator("#lens-mode option[value='trust']").is_disabled()
+    page.locator("#viewer").focus()
+    page.keyboard.press("u")
+    assert page.locator("#viewer").get_attribute("data-mode") != "trust"
+    assert "streamed" in page.locator("#readout").inner_text()
     page.locator("#viewer").focus()
     page.keyboard.press("w")
     assert page.locator("#best-light").get_attribute("aria-pressed") == "false"

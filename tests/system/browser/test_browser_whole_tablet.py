@@ -237,9 +237,10 @@ def test_every_shading_mode_uses_each_faces_own_maps(whole_page, tools):
         px = _shot(page, tools, view="reverse", key="6", mode=mode)
         notice = page.locator("#notice").inner_text()
         assert "not available" not in notice and "No " not in notice, (mode, notice)
+        flag = {"curvature": "uHasCurvature", "accessibility": "uHasAccess"}.get(mode)
         has = page.evaluate(
-            """() => window.hammurabi.viewer.model.partMaterials.map(
-              (m) => m.uniforms.uHasTexture.value)"""
+            "f => window.hammurabi.viewer.model.partMaterials.map((m) => f && m.uniforms[f].value)",
+            flag,
         )
         if mode in ("curvature", "accessibility"):
             assert all(has), (mode, has)  # every face's own map, not the half-lit fallback

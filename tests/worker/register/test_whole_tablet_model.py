@@ -176,3 +176,66 @@ def test_a_photo_the_index_lists_but_the_model_lacks_leaves_the_photographs_out(
     (d / next(n for n in files if n.endswith(".jpg"))).unlink()
     _, raw = load_model_dir(d)
     assert sorted(raw["photo_files"]) == ["gloss.json", "gloss.png"]
+
+
+def test_each_face_carries_its_trust_and_heights_with_one_legend(gt, tmp_path):
+    """faces/<label>/trust.png, trust.json and uncertainty_um.npy are the face model's own
+    (worker/trust_assets.py on the same maps), encoded on one pair of legend tops for every
+    face; its walls map (refinements) is carried and read, and its heights are carried."""
+    import shutil
+
+    import cv2
+
+    from worker.trust import DISAGREE, NORMALS_ONLY, REFINED
+    from worker.trust_assets import trust_assets
+
+    paths, truths = gt
+    copies = []
+    for k, path in enumerate(paths):
+        d = Path(shutil.copytree(path, tmp_path / path.name))
+        (d / "quality").mkdir()
+        h = np.load(d / "height.npy")
+        rng = np.random.default_rng(k)
+        # Fringe noise growing with k (each face its own legend top), no fringe height in
+        # the right third, a biased block, and walls a refinement changed.
+        dis = rng.normal(0.0, 1.0 + 3.0 * k, h.shape).astype(np.float32)
+        dis[:, 2 * h.shape[1] // 3 :] = np.nan
+        dis[10:14, 10:14] = 200.0
+        walls = np.zeros(h.shape, np.uint8)
+        walls[20:23, 5:8] = 1
+        np.save(d / "quality" / "fringe_disagreement_um.npy", dis)
+        np.save(d / "quality" / "walls.npy", walls)
+        copies.append(d)
+    loaded = [load_model_dir(p) for p in copies]
+    files = whole_tablet_model(loaded, truths)
+    metas, own_tops, normals_only = {}, [], 0
+    for (cloud, raw), d in zip(loaded, copies, strict=True):
+        prefix = face_asset_dir(cloud.label)
+        h = np.load(d / "height.npy")
+        np.testing.assert_array_equal(np.load(io.BytesIO(files[f"{prefix}/height.npy"])), h)
+        own = trust_assets(d, h, json.loads((d / "report.json").read_text()))
+        own_meta = json.loads(own["trust.json"])
+        own_tops.append((own_meta["disagreement_scale_um"], own_meta["uncertainty_scale_um"]))
+        sigma = np.load(io.BytesIO(files[f"{prefix}/uncertainty_um.npy"]))
+        np.testing.assert_array_equal(sigma, np.load(io.BytesIO(own["uncertainty_um.npy"])))
+        rgba = cv2.imdecode(np.frombuffer(files[f"{prefix}/trust.png"], np.uint8), -1)
+        own_rgba = cv2.imdecode(np.frombuffer(own["trust.png"], np.uint8), -1)
+        classes = rgba[..., 2]
+        np.testing.assert_array_equal(classes, own_rgba[..., 2])
+        mask = raw["mask"] & np.isfinite(h)
+        assert (classes[10:14, 10:14][mask[10:14, 10:14]] == DISAGREE).all(), cloud.label
+        assert (classes[20:23, 5:8][mask[20:23, 5:8]] == REFINED).all(), cloud.label
+        right = classes[:, 2 * h.shape[1] // 3 + 2 :]
+        assert (right[right > 0] == NORMALS_ONLY).all(), cloud.label  # no fringe height
+        normals_only += int((right == NORMALS_ONLY).sum())
+        metas[cloud.label] = json.loads(files[f"{prefix}/trust.json"])
+        # B (σ_h) on the common legend top, not the face's own.
+        top = metas[cloud.label]["uncertainty_scale_um"]
+        b = np.rint(255 * np.clip(np.nan_to_num(sigma) / top, 0, 1))
+        assert np.abs(rgba[..., 0][mask] - b[mask]).max() <= 1, cloud.label
+        assert metas[cloud.label]["pixel_size_um"] == raw["pixel_size_um"]
+        assert metas[cloud.label]["pixels"] == int(np.isfinite(h).sum())
+    tops = {(m["disagreement_scale_um"], m["uncertainty_scale_um"]) for m in metas.values()}
+    assert tops == {(max(t[0] for t in own_tops), max(t[1] for t in own_tops))}
+    assert len({t[0] for t in own_tops}) > 1  # the faces' own tops differ: one was chosen
+    assert normals_only > 0
