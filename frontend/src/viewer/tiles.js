@@ -24,6 +24,7 @@ import { MeshoptDecoder } from 'meshoptimizer/decoder';
 import { createHeightRows } from './heightRows.js';
 import { applyPartShading, createPartMaterial } from './material.js';
 import { bilinearHeight } from './profile.js';
+import { installFacingError } from './tileFacing.js';
 
 /** Default GPU memory budget of the tile cache (bytes). */
 export const DEFAULT_BUDGET_MB = 256;
@@ -226,6 +227,7 @@ export async function openTiledModel({
     },
   };
   tiles.registerPlugin(relight);
+  installFacingError(tiles); // edge-on tiles need less detail (tileFacing.js)
 
   tiles.addEventListener('dispose-model', ({ scene }) => {
     scene.traverse((obj) => {
@@ -321,6 +323,7 @@ export async function openTiledModel({
         tiles.setCamera(camera);
         cameraInUse = camera;
       }
+      // CSS pixels (getSize), whatever the pixel ratio a frame is drawn at (adaptiveResolution.js).
       tiles.setResolutionFromRenderer(camera, renderer);
       camera.updateMatrixWorld();
       // 3d-tiles-renderer 0.5.3 measures an orthographic camera's pixel in WORLD units (mm
