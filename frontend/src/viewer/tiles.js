@@ -150,13 +150,10 @@ export async function openTiledModel({
   const tilesetUrl = resolveTilesUrl(indexUrl, index.tileset);
   const kind = index.faces ? 'tablet' : 'face';
   let pixelSizeUm = Number(index.pixel_size_um);
-  if (kind === 'tablet') {
-    // The faces of one tablet are scanned with one pixel size; the first face's index says it.
-    const faceUrl = resolveTilesUrl(indexUrl, Object.values(index.faces)[0]);
-    const r = await fetch(faceUrl, { signal, credentials: 'same-origin' });
-    if (!r.ok) throw new Error(`${faceUrl}: HTTP ${r.status}`);
-    pixelSizeUm = Number(validateIndex(await r.json()).pixel_size_um);
-  }
+  // The faces of one tablet are scanned with one pixel size; the first face's index says it
+  // (fetched while the root tileset loads, not before).
+  const facePixelSize = kind === 'tablet' ? firstFacePixelSizeUm(index, indexUrl, signal) : null;
+  facePixelSize?.catch(() => {}); // awaited below; not unhandled if the root fails first
 
   const tiles = new TilesRenderer(tilesetUrl);
   tiles.fetchOptions = { credentials: 'same-origin' };
@@ -255,6 +252,14 @@ export async function openTiledModel({
   // The renderer needs update() calls to start loading; a camera-less one fetches the root.
   tiles.update();
   await abortable(rootLoaded, signal, () => tiles.dispose());
+  if (facePixelSize) {
+    try {
+      pixelSizeUm = await facePixelSize;
+    } catch (err) {
+      tiles.dispose();
+      throw err;
+    }
+  }
 
   // Undo the tileset frame: the GLBs hold scan-frame mm under a node that cancels the
   // renderer's y-up → z-up rotation, so the root's transform applies to scan coordinates
@@ -407,6 +412,13 @@ export async function openTiledModel({
       materials.clear();
     },
   };
+}
+
+async function firstFacePixelSizeUm(index, indexUrl, signal) {
+  const faceUrl = resolveTilesUrl(indexUrl, Object.values(index.faces)[0]);
+  const r = await fetch(faceUrl, { signal, credentials: 'same-origin' });
+  if (!r.ok) throw new Error(`${faceUrl}: HTTP ${r.status}`);
+  return Number(validateIndex(await r.json()).pixel_size_um);
 }
 
 /**
