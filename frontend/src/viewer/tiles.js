@@ -25,6 +25,7 @@ import { createHeightRows } from './heightRows.js';
 import { applyPartShading, createPartMaterial } from './material.js';
 import { bilinearHeight } from './profile.js';
 import { installFacingError } from './tileFacing.js';
+import { runQueuesPromptly } from './tileQueues.js';
 
 /** Default GPU memory budget of the tile cache (bytes). */
 export const DEFAULT_BUDGET_MB = 256;
@@ -156,6 +157,7 @@ export async function openTiledModel({
   facePixelSize?.catch(() => {}); // awaited below; not unhandled if the root fails first
 
   const tiles = new TilesRenderer(tilesetUrl);
+  runQueuesPromptly(tiles); // a tile's steps need not wait for frames (tileQueues.js)
   tiles.fetchOptions = { credentials: 'same-origin' };
   tiles.errorTarget = errorTarget;
   setBudget(tiles, budgetMb);
