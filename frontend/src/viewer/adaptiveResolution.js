@@ -18,7 +18,7 @@ export const MIN_SCALE = 0.25;
 /** Still time (ms) after which the full-resolution frame is drawn. */
 export const SETTLE_MS = 200;
 /** Longer intervals between two moving frames are pauses of the user, not frame cost. */
-const MAX_MEASURED_MS = 2000;
+const MAX_MEASURED_MS = 10000;
 
 /**
  * The next resolution scale (a factor of the pixel ratio, in [minScale, maxScale]) after a
@@ -59,11 +59,14 @@ export function createAdaptiveResolution({
   let lastMovingFrameMs = null;
   let movedSinceFrame = false;
   let enabled = true;
+  // The last measured frame: "still" means no move for longer than a frame or two, not just
+  // settleMs (a software renderer under load takes seconds a frame; a shorter wait would
+  // draw a full-resolution frame between every two moves).
+  let frameMs = 0;
 
   function settle() {
     timer = null;
     moving = false;
-    lastMovingFrameMs = null;
     onSettle();
   }
 
@@ -74,22 +77,25 @@ export function createAdaptiveResolution({
       moving = true;
       movedSinceFrame = true;
       if (timer !== null) clearTimer(timer);
-      timer = setTimer(settle, settleMs);
+      timer = setTimer(settle, Math.max(settleMs, 2 * frameMs));
     },
     /**
      * A frame starts at `timeMs`: the scale of the pixel ratio to draw it at (1: full).
      * @param {number} timeMs
      */
     frame(timeMs) {
-      if (!moving) return 1;
-      // Consecutive moving frames measure the frame cost at the scale drawn last.
+      // Consecutive moving frames measure the frame cost at the scale drawn last; a frame
+      // without a move (the user paused) ends the run.
       if (lastMovingFrameMs !== null && movedSinceFrame) {
         const dt = timeMs - lastMovingFrameMs;
-        if (dt > 0 && dt < MAX_MEASURED_MS) scale = nextResolutionScale(scale, dt, { targetMs, minScale });
+        if (dt > 0 && dt < MAX_MEASURED_MS) {
+          scale = nextResolutionScale(scale, dt, { targetMs, minScale });
+          frameMs = dt;
+        }
       }
       lastMovingFrameMs = movedSinceFrame ? timeMs : null;
       movedSinceFrame = false;
-      return scale;
+      return moving ? scale : 1;
     },
     /** Off: every frame at full resolution (e.g. for pixel-exact tests); on again with true. */
     setEnabled(on) {

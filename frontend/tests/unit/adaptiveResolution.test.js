@@ -72,6 +72,21 @@ describe('createAdaptiveResolution', () => {
     expect(a.frame(t + 5000)).toBe(MIN_SCALE);
   });
 
+  it('waits longer than a slow frame before settling, and measures across it', () => {
+    const clock = manualTimers();
+    let settled = 0;
+    const a = createAdaptiveResolution({ onSettle: () => settled++, ...clock });
+    a.moved();
+    a.frame(0);
+    clock.fire(); // the first settle (200 ms) passed while the frame was being drawn
+    expect(settled).toBe(1);
+    a.moved(); // the next move lands with that full-resolution frame's request
+    expect(a.frame(3000)).toBe(0.5); // measured: 3 s a frame
+    a.moved();
+    expect(clock.pending).toBe(1);
+    expect(a.frame(6000)).toBe(MIN_SCALE);
+  });
+
   it('does not count a pause between two moves as frame cost', () => {
     const clock = manualTimers();
     const a = createAdaptiveResolution({ onSettle: () => {}, ...clock });
