@@ -87,6 +87,36 @@ async (n) => {
 }
 """
 
+# Where the first render's time went: when each step's request ended (Resource Timing, ms from
+# navigation), the viewer's own marks (tiles.js loaded, root tileset, first tile parsed) and
+# the first frame with a tile. Steps not seen are null (e.g. marks of an older build).
+FIRST_RENDER_STEPS = """
+() => {
+  const r = performance.getEntriesByType('resource');
+  const nav = performance.getEntriesByType('navigation')[0];
+  const first = (re, key = 'responseEnd') => {
+    const hits = r.filter(e => re.test(e.name)).map(e => e[key]);
+    return hits.length ? Math.min(...hits) : null;
+  };
+  const mark = (name) => performance.getEntriesByName(name)[0]?.startTime ?? null;
+  return {
+    html: nav.responseEnd,
+    bundle: first(/\\/assets\\/tablet-[^/]*\\.js$/),
+    dom_ready: nav.domContentLoadedEventEnd,
+    model_api: first(/\\/models\\/\\d+$/),
+    tiles_js: first(/\\/assets\\/tiles-[^/]*\\.js$/),
+    index_json: first(/tiles\\/index\\.json$/),
+    root_tileset: first(/tileset\\.json$/),
+    tileset_ready: mark('dh:tileset-ready'),
+    glb_request: first(/\\.glb$/, 'startTime'),
+    glb_received: first(/\\.glb$/),
+    tile_parsed: mark('dh:tile-parsed'),
+    first_frame: window.__firstTileMs,
+    first_frame_render_ms: window.hammurabi?.viewer?.frameStats?.().firstTileRenderMs ?? null,
+  };
+}
+"""
+
 TRANSFERRED = """
 () => performance.getEntriesByType('resource')
   .filter(e => e.name.includes('/assets/tiles/'))
@@ -142,6 +172,7 @@ def measure(page, lib, label: str, model_dir: Path, args) -> dict:
         return measure_single_mesh(page, label, model_dir, args)
     page.wait_for_function("() => window.__firstTileMs !== undefined", timeout=120000)
     first_ms = page.evaluate("() => window.__firstTileMs")
+    steps = page.evaluate(FIRST_RENDER_STEPS)
     box = page.locator("#viewer").bounding_box()
     cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
     a = (box["x"] + box["width"] * 0.4, box["y"] + box["height"] * 0.45)
@@ -170,6 +201,7 @@ def measure(page, lib, label: str, model_dir: Path, args) -> dict:
         "label": label,
         "mpx": sum(f["width_px"] * f["height_px"] for f in faces) / 1e6,
         "first_ms": first_ms,
+        "first_steps": steps,
         "zoom_ms": [z["ms"] for z in zooms],
         "zoom_steps": [z["tile"] and z["tile"].get("pixel_step") for z in zooms],
         "transferred": transferred,
@@ -215,6 +247,12 @@ def main() -> None:
     parser.add_argument("--budget-mb", type=float, default=256)
     parser.add_argument("--error-px", type=float, default=1)
     parser.add_argument("--orbit-frames", type=int, default=60)
+    parser.add_argument(
+        "--dist",
+        type=Path,
+        help="serve this built frontend (e.g. a copy of an earlier build, for before/after) "
+        "instead of building frontend/dist",
+    )
     args = parser.parse_args()
     models = []
     for spec in args.model:
@@ -227,6 +265,10 @@ def main() -> None:
         models.append((label, model_dir))
 
     server = _server_module()
+    if args.dist is not None:
+        if not (args.dist / "tablet.html").is_file():
+            parser.error(f"{args.dist}: not a built frontend (no tablet.html)")
+        server.ensure_frontend_built = lambda: args.dist.resolve()
     from playwright.sync_api import sync_playwright
 
     rows = []
@@ -274,6 +316,13 @@ def main() -> None:
             f"| {100 * r['transferred'] / max(r['finest'], 1):.1f} "
             f"| {r['peak'] / mb:.0f} / {r['budget'] / mb:.0f} | {r['fps']:.1f} |"
         )
+    print("\nFirst render, ms from navigation (request ends; viewer marks):")
+    for r in rows:
+        steps = r.get("first_steps") or {}
+        cells = ", ".join(
+            f"{k} {v:.0f}" for k, v in steps.items() if isinstance(v, int | float) and v == v
+        )
+        print(f"- {r['label']}: {cells}")
 
 
 if __name__ == "__main__":

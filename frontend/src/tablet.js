@@ -265,7 +265,7 @@ async function showModel(modelId) {
   $('progress-fill').style.width = '0%';
   $('progress-label').textContent = 'Loading the model…';
   try {
-    const model = await api.getModel(modelId);
+    const model = (await takeEarly('model', modelId)) ?? (await api.getModel(modelId));
     if (signal.aborted) return;
     const assets = Object.fromEntries(Object.entries(model.assets ?? {}).map(([k, v]) => [k, api.assetHref(v)]));
     await viewer.load({
@@ -319,9 +319,9 @@ async function refreshScans({ pickModel }) {
   // which the tablet route resolves but the model list (?tablet_id=) does not.
   const id = tablet?.id ?? tabletId;
   const [scans, wholeTablet] = await Promise.all([
-    api.tabletScans(id),
+    takeEarly('scans', id).then((r) => r ?? api.tabletScans(id)),
     // The whole tablet is an extra; the page works without it.
-    api.tabletModels(id).catch(() => []),
+    takeEarly('models', id).then((r) => r ?? api.tabletModels(id).catch(() => [])),
   ]);
   tabletModels = Array.isArray(wholeTablet) ? wholeTablet : [];
   const list = Array.isArray(scans) ? scans : (scans.items ?? []);
@@ -356,11 +356,38 @@ $('model-select').addEventListener('change', (e) => {
 });
 window.addEventListener('beforeunload', () => viewer.dispose());
 
+/**
+ * Requests the page will make, started together at once instead of one after the other
+ * (issue 19: first render ≤ 1 s): the tablet's scans and models when the page's id is the
+ * numeric one (the lists need it; a P-number is resolved by the tablet route first), and the
+ * model a permalink names. Each is used once, by the step that would have asked for it, and
+ * only for the id it was asked for; a failed one is asked for again there (its error shown).
+ */
+const early = new Map(); // kind → {id, promise of the response or null}
+
+function startEarly(kind, id, request) {
+  early.set(kind, { id, promise: request().catch(() => null) });
+}
+
+/** The early response of `kind` for `id`, or null (none, another id, failed, used already). */
+async function takeEarly(kind, id) {
+  const e = early.get(kind);
+  if (!e || String(e.id) !== String(id)) return null;
+  early.delete(kind);
+  return e.promise;
+}
+
 async function main() {
   if (!tabletId) {
     showError($('tablet-error'), 'No tablet given: open this page as tablet.html?id=N from the library.');
     return;
   }
+  if (/^\d+$/.test(tabletId)) {
+    startEarly('scans', tabletId, () => api.tabletScans(tabletId));
+    startEarly('models', tabletId, () => api.tabletModels(tabletId));
+  }
+  const linked = restoring?.state.model;
+  if (Number.isInteger(linked)) startEarly('model', linked, () => api.getModel(linked));
   try {
     tablet = await api.getTablet(tabletId);
     renderCatalogue(tablet);

@@ -24,6 +24,8 @@ import { MeshoptDecoder } from 'meshoptimizer/decoder';
 import { createHeightRows } from './heightRows.js';
 import { applyPartShading, createPartMaterial } from './material.js';
 import { bilinearHeight } from './profile.js';
+import { installFacingError } from './tileFacing.js';
+import { runQueuesPromptly } from './tileQueues.js';
 
 /** Default GPU memory budget of the tile cache (bytes). */
 export const DEFAULT_BUDGET_MB = 256;
@@ -193,15 +195,13 @@ export async function openTiledModel({
   const tilesetUrl = resolveTilesUrl(indexUrl, index.tileset);
   const kind = index.faces ? 'tablet' : 'face';
   let pixelSizeUm = Number(index.pixel_size_um);
-  if (kind === 'tablet') {
-    // The faces of one tablet are scanned with one pixel size; the first face's index says it.
-    const faceUrl = resolveTilesUrl(indexUrl, Object.values(index.faces)[0]);
-    const r = await fetch(faceUrl, { signal, credentials: 'same-origin' });
-    if (!r.ok) throw new Error(`${faceUrl}: HTTP ${r.status}`);
-    pixelSizeUm = Number(validateIndex(await r.json()).pixel_size_um);
-  }
+  // The faces of one tablet are scanned with one pixel size; the first face's index says it
+  // (fetched while the root tileset loads, not before).
+  const facePixelSize = kind === 'tablet' ? firstFacePixelSizeUm(index, indexUrl, signal) : null;
+  facePixelSize?.catch(() => {}); // awaited below; not unhandled if the root fails first
 
   const tiles = new TilesRenderer(tilesetUrl);
+  runQueuesPromptly(tiles); // a tile's steps need not wait for frames (tileQueues.js)
   tiles.fetchOptions = { credentials: 'same-origin' };
   tiles.errorTarget = errorTarget;
   setBudget(tiles, budgetMb);
@@ -276,6 +276,7 @@ export async function openTiledModel({
     },
   };
   tiles.registerPlugin(relight);
+  installFacingError(tiles); // edge-on tiles need less detail (tileFacing.js)
 
   tiles.addEventListener('dispose-model', ({ scene }) => {
     scene.traverse((obj) => {
@@ -303,6 +304,14 @@ export async function openTiledModel({
   // The renderer needs update() calls to start loading; a camera-less one fetches the root.
   tiles.update();
   await abortable(rootLoaded, signal, () => tiles.dispose());
+  if (facePixelSize) {
+    try {
+      pixelSizeUm = await facePixelSize;
+    } catch (err) {
+      tiles.dispose();
+      throw err;
+    }
+  }
 
   // Undo the tileset frame: the GLBs hold scan-frame mm under a node that cancels the
   // renderer's y-up → z-up rotation, so the root's transform applies to scan coordinates
@@ -389,6 +398,7 @@ export async function openTiledModel({
         tiles.setCamera(camera);
         cameraInUse = camera;
       }
+      // CSS pixels (getSize), whatever the pixel ratio a frame is drawn at (adaptiveResolution.js).
       tiles.setResolutionFromRenderer(camera, renderer);
       camera.updateMatrixWorld();
       // 3d-tiles-renderer 0.5.3 measures an orthographic camera's pixel in WORLD units (mm
@@ -472,6 +482,13 @@ export async function openTiledModel({
       materials.clear();
     },
   };
+}
+
+async function firstFacePixelSizeUm(index, indexUrl, signal) {
+  const faceUrl = resolveTilesUrl(indexUrl, Object.values(index.faces)[0]);
+  const r = await fetch(faceUrl, { signal, credentials: 'same-origin' });
+  if (!r.ok) throw new Error(`${faceUrl}: HTTP ${r.status}`);
+  return Number(validateIndex(await r.json()).pixel_size_um);
 }
 
 /**

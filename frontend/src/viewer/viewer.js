@@ -26,6 +26,22 @@ import { applyEnhance, defaultEnhance } from './enhance.js';
 import { TRUST_LAYERS } from './trust.js';
 import { tilesIndexUrl } from './tilesIndex.js';
 import { groupOfPoint, groupVertexSpans } from './faceGrids.js';
+import { createAdaptiveResolution } from './adaptiveResolution.js';
+
+/**
+ * The streaming module (tiles.js: 3d-tiles-renderer and meshoptimizer's decoder, whose
+ * WebAssembly compiles when the module loads), asked for once. Started when the viewer is
+ * created so that its download and compilation overlap the page's API requests instead of
+ * following them (issue 19: first render).
+ */
+let tilesModule = null;
+function loadTilesModule() {
+  tilesModule ??= import('./tiles.js').catch((err) => {
+    tilesModule = null; // a later load may try again
+    throw err;
+  });
+  return tilesModule;
+}
 
 const PERSPECTIVE_FOV_DEG = 30;
 
@@ -44,8 +60,14 @@ const SEAM_DEPTH_MM = 0.4;
  *   changed (e.g. to update a permalink or a scale bar)
  */
 export function createViewer(canvas, { onChange = () => {} } = {}) {
+  loadTilesModule().catch(() => {}); // prefetch; a failure is reported by load()
   const renderer = new THREE.WebGLRenderer({ canvas, antialias: true, alpha: false });
-  renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
+  const fullPixelRatio = Math.min(window.devicePixelRatio || 1, 2);
+  renderer.setPixelRatio(fullPixelRatio);
+  // Reduced resolution while the camera moves under the user's hand, full when it stops.
+  const adaptive = createAdaptiveResolution({ onSettle: () => invalidate() });
+  const frameStats = { lastScale: 1, firstTileRenderMs: null };
+  let standIn = null; // a mesh with the tiles' material, for precompileTileProgram
   renderer.setClearColor(0x1d1f24, 1);
   renderer.outputColorSpace = THREE.SRGBColorSpace;
 
@@ -79,6 +101,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     controls.zoomToCursor = true;
     controls.screenSpacePanning = true;
     controls.addEventListener('change', () => {
+      adaptive.moved();
       invalidate();
       onChange('camera');
     });
@@ -114,15 +137,34 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     onChange('size');
   }
 
-  function render() {
+  function render(timeMs = performance.now()) {
     frameRequested = false;
     if (disposed) return;
+    const ratio = fullPixelRatio * adaptive.frame(timeMs);
+    if (renderer.getPixelRatio() !== ratio) {
+      renderer.setPixelRatio(ratio);
+      // The lens is placed in drawing-buffer pixels (enhance.js): follow the new ratio.
+      state.enhance = applyEnhance(material.uniforms, state.enhance, { pixelRatio: ratio, canvasHeight: canvas.clientHeight || 1 }, MODE_INDEX);
+    }
+    frameStats.lastScale = ratio / fullPixelRatio;
+    draw();
+  }
+
+  /** Draw one frame at the renderer's current size (the screenshot's own, or the canvas'). */
+  function draw() {
     const u = material.uniforms;
     u.uOrtho.value = camera.isOrthographicCamera;
     camera.getWorldDirection(u.uViewDirOrtho.value).negate();
     u.uProjection.value.copy(camera.projectionMatrix);
     if (state.light.follow) updateLightDirection();
     model?.tiles?.update(camera, renderer); // streaming: levels by screen-space error, loads
+    if (frameStats.firstTileRenderMs === null && model?.tiles?.stats().visibleTiles > 0) {
+      // The first frame with a tile: how long its draw call took (shader program, uploads).
+      const t0 = performance.now();
+      renderer.render(scene, camera);
+      frameStats.firstTileRenderMs = performance.now() - t0;
+      return;
+    }
     renderer.render(scene, camera);
   }
 
@@ -368,6 +410,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       updateProjection();
     }
     controls.update();
+    adaptive.moved();
     invalidate();
     onChange('camera');
   }
@@ -379,6 +422,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     camera.position.copy(controls.target).add(offset);
     camera.lookAt(controls.target);
     makeControls();
+    adaptive.moved();
     invalidate();
     onChange('camera');
   }
@@ -468,7 +512,9 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
    * @param {{budgetMb?: number, errorTarget?: number}} options the tile cache's GPU budget
    */
   async function loadTiled(assets, { signal, budgetMb, errorTarget }) {
-    const { openTiledModel, tiledAssets } = await import('./tiles.js');
+    // The tiles' shader program, compiled while the tileset and the first tile download.
+    precompileTileProgram();
+    const { openTiledModel, tiledAssets } = await loadTilesModule();
     const tiled = await openTiledModel({
       indexUrl: tilesIndexUrl(assets),
       baseMaterial: material,
@@ -482,6 +528,12 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       tiled.dispose();
       return null;
     }
+    markOnce('dh:tileset-ready'); // for bench/streaming.py's first-render steps
+    const onTile = () => {
+      markOnce('dh:tile-parsed');
+      tiled.tiles.removeEventListener('load-model', onTile);
+    };
+    tiled.tiles.addEventListener('load-model', onTile);
     unloadModel();
     scene.add(tiled.object);
     const views = availableViews(tiled.kind);
@@ -493,6 +545,28 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     setView('obverse');
     onChange('model');
     return model;
+  }
+
+  /**
+   * Compile the relighting program the tiles' materials use (createPartMaterial: the base
+   * material's shaders, so one program for every tile) on a stand-in mesh, without drawing:
+   * compileAsync lets the browser compile it in parallel (KHR_parallel_shader_compile) while
+   * the first tiles download, instead of in the first frame that draws one.
+   */
+  function precompileTileProgram() {
+    if (standIn) return;
+    // Kept until the viewer is disposed: three.js frees a program no material uses.
+    standIn = new THREE.Mesh(
+      new THREE.PlaneGeometry(1, 1), // position, normal, uv: as a tile's mesh
+      createPartMaterial(material, { rotation: new THREE.Matrix3(), normals: null, albedo: null }, { seamDepthMm: 0 }),
+    );
+    renderer.compileAsync(standIn, camera).catch((err) => {
+      console.warn('shader precompilation skipped:', err); // the first frame compiles it then
+    });
+  }
+
+  function markOnce(name) {
+    if (!performance.getEntriesByName?.(name).length) performance.mark?.(name);
   }
 
   function unloadModel() {
@@ -720,7 +794,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       u.uLensCentre.value.set(((sx + 1) / 2) * w, ((sy + 1) / 2) * h);
       u.uLensRadius.value = (lens.radius * h) / (ch * grow);
     }
-    render();
+    draw();
     u.uLensCentre.value.copy(savedLens[0]);
     u.uLensRadius.value = savedLens[1];
     const blobPromise = new Promise((resolve, reject) =>
@@ -732,7 +806,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     persp.aspect = saved.pa;
     persp.fov = saved.fov;
     updateProjection();
-    render();
+    draw();
     return blobPromise;
   }
 
@@ -750,6 +824,9 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     if (disposed) return;
     unloadModel();
     disposed = true;
+    adaptive.dispose();
+    standIn?.geometry.dispose();
+    standIn?.material.dispose();
     resizeObserver.disconnect();
     controls.dispose();
     material.userData.blank.dispose();
@@ -788,6 +865,11 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     screenshot,
     memory,
     streaming,
+    /** Figures of the drawing: the last frame's resolution scale (1: full; lower while the
+     * camera moves) and the first tile frame's render call, ms. */
+    frameStats: () => ({ ...frameStats, moving: adaptive.moving, learnedScale: adaptive.scale }),
+    /** Adaptive resolution while moving on (default) or off (every frame at full resolution). */
+    setAdaptiveResolution: (on) => adaptive.setEnabled(on),
     whenIdle,
     invalidate,
     setEnhance,
