@@ -20,6 +20,13 @@ __all__ = [
     "measure_photometric",
 ]
 
+# Width of the neighbourhood whose majority light set the fringe path's normals are fitted
+# from, 0: off. On native-random-0, 3, 5, 7, 9, 15 px gave height MAE 5.68, 5.57, 5.66, 5.95,
+# 5.98 µm (5.81 off), and 5 px lowered the MAE on 8 of 10 bench scans, but raised it on
+# native-random-6 (2.65 → 2.85 µm, wedge depth 10.98 → 12.98): off until that is understood
+# (docs/benchmarks.md, issue 15, session 8).
+_CONSENSUS_WINDOW_PX = 0
+
 
 def _source_footprint(ref_stack, frames, height_um, pixel_size_um, workers=1):
     """Reference radiance at p′ = p − h·tanθ·u instead of p (in place; frames in threads).
@@ -126,7 +133,15 @@ def measure_photometric(bundle, photo, meas, rho_ref, *, stacks=None, workers: i
     # it explains every lit sample, the robust fit elsewhere (never worse than least squares
     # on a matte object). With fringes the fusion's bias correction and weights were tuned
     # with the robust fit everywhere, and keep it.
-    res = photometric_stereo(shading, lights, least_squares_when_consistent=alone, workers=workers)
+    # With fringes, optionally each pixel's normal is fitted again from its neighbourhood's
+    # majority light set (photometric_fit.consensus_refit, see _CONSENSUS_WINDOW_PX).
+    res = photometric_stereo(
+        shading,
+        lights,
+        least_squares_when_consistent=alone,
+        consensus_window_px=0 if alone else _CONSENSUS_WINDOW_PX,
+        workers=workers,
+    )
     meas.normals = res.normals
     meas.albedo = res.albedo
     meas.residual = res.residual

@@ -28,6 +28,8 @@ from worker.recon.photometric_fit import (
     _select,
     asymmetric_refine,
     cone_resolve,
+    consensus_light_sets,
+    consensus_refit,
     consistent_least_squares,
     estimate_sigma,
     initial_inliers,
@@ -131,6 +133,7 @@ def photometric_stereo(
     highlight_rounds: int | None = None,
     highlight_cone_deg: float | None = 20.0,
     least_squares_when_consistent: bool = False,
+    consensus_window_px: int = 0,
     workers: int = 1,
 ) -> PhotometricResult:
     """Robust Lambertian photometric stereo, vectorised over pixels.
@@ -172,6 +175,10 @@ def photometric_stereo(
         the robust fit (:func:`photometric_fit.consistent_least_squares`): the robust steps
         then act only where the data show an outlier. Used for bundles without fringe
         heights (never worse than least squares on a matte object).
+    consensus_window_px : int
+        0: off. Otherwise, after every pixel's own fit, fit each pixel again from the light
+        set that the majority of its ``consensus_window_px``-wide neighbourhood keeps
+        (:func:`photometric_fit.consensus_refit`), where that set explains its samples.
     workers : int
         Threads sharing the chunks of pixels (the result does not depend on it).
 
@@ -225,7 +232,7 @@ def photometric_stereo(
     rounds = (12 if k >= _DENSE_LIGHTS else 0) if highlight_rounds is None else highlight_rounds
     chunk = max(4096, _CHUNK_SAMPLES // k)
 
-    def solve(start: int) -> None:
+    def chunk_of(start: int):
         # Without a mask the chunks are contiguous slices: no gather copy of the stack.
         idx = (
             pix[start : start + chunk]
@@ -238,6 +245,9 @@ def photometric_stereo(
         np.copyto(s, np.float32(0.0), where=~valid)
         cand, _ = initial_inliers(s, valid, shadow_fraction, abs_tol)
         model = Model(s, valid, lights32, ll6, shadow_fraction, outlier_tolerance, abs_tol, half32)
+        return idx, s, valid, cand, model
+
+    def fit(model, cand):
         b, ok, inl = robust_fit(model, cand, max_iterations)
         if rounds:
             inl, b, ok = mirror_trim(model, inl, b, ok, noise_sigma or 0.0, rounds=rounds)
@@ -248,6 +258,9 @@ def photometric_stereo(
         b = asymmetric_refine(model, inl, b, ok, noise_sigma or 0.0)
         if least_squares_when_consistent:
             inl, b, ok = consistent_least_squares(model, cand, inl, b, ok, noise_sigma or 0.0)
+        return inl, b, ok
+
+    def finish(idx, s, valid, inl, b, ok) -> None:
         rho = _row_norms(b)
         ok &= rho > 0
         n = b / np.where(ok, rho, 1.0)[:, None]
@@ -265,8 +278,34 @@ def photometric_stereo(
         lit = valid & (s > abs_tol) & (pred > np.float32(shadow_fraction) * rho[None, :])
         rejected[idx] = np.where(ok, _count(lit & ~inl), 0)
 
+    def solve(start: int) -> None:
+        idx, s, valid, cand, model = chunk_of(start)
+        inl, b, ok = fit(model, cand)
+        if consensus_window_px:
+            # Kept for the second pass, which needs every pixel's neighbours fitted.
+            inl_all[:, idx], b_all[idx], ok_all[idx] = inl, b, ok
+        else:
+            finish(idx, s, valid, inl, b, ok)
+
+    def resolve(start: int) -> None:
+        idx, s, valid, _, model = chunk_of(start)
+        inl, b, ok = consensus_refit(
+            model, inl_all[:, idx], b_all[idx], ok_all[idx], consensus[:, idx]
+        )
+        finish(idx, s, valid, inl, b, ok)
+
+    if consensus_window_px:
+        inl_all = np.zeros((k, h * w), dtype=bool)
+        b_all = np.zeros((h * w, 3))
+        ok_all = np.zeros(h * w, dtype=bool)
+
     # Pixels are independent: chunks run in threads (numpy releases the GIL on the arrays).
     run_blocks(solve, range(0, pix.size, chunk), workers=workers)
+    if consensus_window_px:
+        consensus = consensus_light_sets(
+            inl_all.reshape(k, h, w), ok_all.reshape(h, w), consensus_window_px
+        ).reshape(k, h * w)
+        run_blocks(resolve, range(0, pix.size, chunk), workers=workers)
 
     return PhotometricResult(
         normals=normals.reshape(h, w, 3),

@@ -10,10 +10,13 @@ studentised residuals and re-admitted until it settles.  See docs/reconstruction
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 
 __all__ = [
     "Model",
     "cone_resolve",
+    "consensus_light_sets",
+    "consensus_refit",
     "consistent_least_squares",
     "estimate_sigma",
     "initial_inliers",
@@ -694,4 +697,46 @@ def consistent_least_squares(model, cand, inl, b, ok, sigma=0.0, *, cone_deg=20.
     b = np.where(take[:, None], b_ls, b)
     ok = np.where(take, ok_ls, ok)
     inl = _select(take[None, :], cand, inl)
+    return inl, b, ok
+
+
+def consensus_light_sets(inl_img: np.ndarray, ok_img: np.ndarray, window_px: int) -> np.ndarray:
+    """Per pixel, the lights that the majority of the solved pixels of its ``window_px`` ×
+    ``window_px`` neighbourhood keep as inliers: (K, H, W) bool from the per-pixel inlier
+    sets ``inl_img`` (K, H, W) and the solved pixels ``ok_img`` (H, W).
+
+    A majority (box) filter of the inlier mask, light by light: the neighbourhood's one
+    light set, so that neighbouring normals are fitted from the same lights.
+    """
+    ok32 = ok_img.astype(np.float32)
+    half = 0.5 * ndimage.uniform_filter(ok32, window_px, mode="constant")
+    out = np.empty(inl_img.shape, dtype=bool)
+    for k in range(inl_img.shape[0]):
+        votes = ndimage.uniform_filter(inl_img[k] * ok32, window_px, mode="constant")
+        np.greater(votes, half, out=out[k])
+    return out
+
+
+def consensus_refit(model, inl, b, ok, consensus):
+    """Fit each pixel again from its neighbourhood's light set ``consensus`` (K, n) bool
+    (:func:`consensus_light_sets`) where that set explains its samples. Returns (inl, b, ok).
+
+    The robust fit chooses each pixel's inliers on its own; neighbouring pixels then use
+    different light subsets, and the Lambertian departures within the tolerance (a lobe's
+    tail, interreflection, subsurface light) bias each subset's normal differently: a
+    patchwork of biases whose low frequencies integrate into height error (docs/
+    benchmarks.md, issue 15, session 7: on native-random-0 the pixels whose count of lights
+    differs from a neighbour's carry the default's height loss). One set over a
+    neighbourhood makes the bias smooth (the fusion's normal-bias correction removes smooth
+    biases). The pixel stands down, keeping its own set, where the neighbourhood's set
+    leaves one of its samples beyond the inlier tolerance or behind the terminator (a cast
+    shadow's edge, a highlight of its own), or spans fewer than three lights.
+    """
+    use = consensus & model.valid
+    b_c, ok_c = _fit(model.s, use, model.lights32, model.ll6)
+    r, tol, front = model.residual(b_c)
+    bad = use & ((np.abs(r) > tol) | ~front)
+    take = ok_c & ok & ~np.any(bad, axis=0) & np.any(use != inl, axis=0)
+    b = np.where(take[:, None], b_c, b)
+    inl = _select(take[None, :], use, inl)
     return inl, b, ok

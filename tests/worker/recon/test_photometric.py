@@ -275,3 +275,72 @@ def test_least_squares_where_consistent_keeps_the_robust_fit_at_highlights():
     assert e_gated == pytest.approx(_mean_error_deg(robust.normals, n, inside), rel=0.1)
     # The highlight samples are counted as outliers: lit, yet left out.
     assert gated.outliers[inside].max() >= 3
+
+
+def test_consensus_light_sets_take_the_neighbourhood_majority():
+    from worker.recon.photometric_fit import consensus_light_sets
+
+    # Light 0 kept by a quarter of the pixels, light 1 by three quarters, light 2 by all;
+    # the unsolved border votes for nothing.
+    rng = np.random.default_rng(1)
+    inl = np.ones((3, 40, 40), dtype=bool)
+    inl[0] = rng.uniform(size=(40, 40)) < 0.25
+    inl[1] = rng.uniform(size=(40, 40)) < 0.75
+    ok = np.zeros((40, 40), dtype=bool)
+    ok[2:-2, 2:-2] = True
+    inl[:, ~ok] = False
+    c = consensus_light_sets(inl, ok, 9)
+    core = ok.copy()
+    core[:6, :] = core[-6:, :] = core[:, :6] = core[:, -6:] = False
+    assert c[0][core].mean() < 0.05
+    assert c[1][core].mean() > 0.95
+    assert c[2][ok].all()  # unsolved neighbours do not outvote the solved ones
+
+
+def _biased_light_sphere(rng, bias):
+    """A sphere under 8 lights at 45° whose first light reads `bias` too bright: at the fit's
+    relative tolerance, so that noise decides pixel by pixel whether it is kept."""
+    yy, xx = np.mgrid[0:64, 0:64] - 31.5
+    r2 = (xx**2 + yy**2) / 60.0**2
+    n = np.stack([xx / 60.0, yy / 60.0, -np.sqrt(1 - r2)], -1)
+    ls = light_directions(np.arange(8) * 45.0, 45.0)
+    s = 0.5 * np.clip(np.einsum("hwc,kc->khw", n, ls), 0, None)
+    s[0] *= 1.0 + bias
+    return (s + rng.normal(0, 0.004, s.shape)).astype(np.float32), ls, n
+
+
+def test_consensus_window_keeps_one_light_set_over_a_neighbourhood():
+    s, ls, n = _biased_light_sphere(np.random.default_rng(5), 0.12)
+    own = photometric_stereo(s, ls)
+    shared = photometric_stereo(s, ls, consensus_window_px=5)
+
+    def switches(r):
+        return np.mean(r.lights_used[:, 1:] != r.lights_used[:, :-1])
+
+    def roughness(r):
+        # Pixel-to-pixel jumps of the normal error: the patchwork that integrates into
+        # height error.
+        return np.mean(np.abs(np.diff(r.normals[..., 0] - n[..., 0], axis=1)))
+
+    assert switches(own) > 0.15  # the patchwork is there
+    assert switches(shared) < 0.5 * switches(own)
+    assert roughness(shared) < 0.95 * roughness(own)
+
+
+def test_consensus_window_still_rejects_highlights_and_cast_shadows():
+    rng = np.random.default_rng(6)
+    s, ls, n = _biased_light_sphere(rng, 0.0)
+    half = ls + np.array([0.0, 0.0, -1.0])
+    half /= np.linalg.norm(half, axis=1)[:, None]
+    nh = np.clip(np.einsum("hwc,kc->khw", n, half), 0, None)
+    s = s + (0.8 * nh**1000).astype(np.float32)  # highlights
+    s[3, :, :30] = 0.0  # a cast shadow over a third of the image, sharp edge
+    own = photometric_stereo(s, ls)
+    shared = photometric_stereo(s, ls, consensus_window_px=5)
+    e_own = _mean_error_deg(own.normals, n, np.ones(n.shape[:2], bool))
+    e_shared = _mean_error_deg(shared.normals, n, np.ones(n.shape[:2], bool))
+    assert e_shared < 1.1 * e_own + 0.05
+    # A shadowed or highlight sample kept by the neighbourhood's set would tilt the normal
+    # by degrees (0.8 above a shading of ~0.3; the shadow's 0 on a lit sample).
+    err = np.degrees(np.arccos(np.clip(np.sum(shared.normals * n, -1), -1, 1)))
+    assert np.max(err) < 5.0
