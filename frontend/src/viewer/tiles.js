@@ -21,6 +21,7 @@ import * as THREE from 'three';
 import { TilesRenderer } from '3d-tiles-renderer/three';
 import { GLTFExtensionsPlugin } from '3d-tiles-renderer/three/plugins';
 import { MeshoptDecoder } from 'meshoptimizer/decoder';
+import { classifyAssets, disposeTexture, fetchBytes, loadQualityMaps, loadTrustMap } from './assets.js';
 import { createHeightRows } from './heightRows.js';
 import { applyPartShading, createPartMaterial } from './material.js';
 import { bilinearHeight } from './profile.js';
@@ -125,6 +126,35 @@ export function tileInfo(tile, object = null) {
 }
 
 /**
+ * Where a tile's uv fall on its face's whole image grid, as [offsetU, offsetV, scaleU, scaleV]
+ * (face uv = offset + scale · tile uv; the shader's `uFaceUv`), so that maps of the whole face
+ * (trust.png, quality/*.npy: one texture per face, not per tile) are sampled under a tile.
+ *
+ * A tile of pixel step s covers texels [tx0, tx1) of its level, tx0 = ⌊x0/s⌋, tx1 = ⌈x1/s⌉ of
+ * its px_rect [x0, y0, x1, y1); its uv put texel t's centre at (t − tx0 + ½)/(tx1 − tx0)
+ * (worker/tiles/tile_mesh.py), and that texel averages full-resolution pixels [t·s, (t+1)·s),
+ * whose centre on the face's grid (width W px, pixel c at u = (c + ½)/W, assets.js) is
+ * u = (t·s + s/2)/W. Solving for u: u = tx0·s/W + (tx1 − tx0)·s/W · u_tile. (At the right and
+ * bottom edges a texel's pixels may stop at W: its centre is then off by under s/2 pixels.)
+ * @param {{px_rect: number[], pixel_step: number} | null} info the tile's dh_tile
+ * @param {number} widthPx W of the face's grid
+ * @param {number} heightPx H
+ * @returns {number[] | null} null when the tile does not say its rectangle
+ */
+export function tileFaceUv(info, widthPx, heightPx) {
+  const s = Number(info?.pixel_step);
+  const r = info?.px_rect;
+  if (!(s > 0) || !Array.isArray(r) || r.length !== 4 || !(widthPx > 0) || !(heightPx > 0)) return null;
+  const [x0, y0, x1, y1] = r.map(Number);
+  if (![x0, y0, x1, y1].every(Number.isFinite) || !(x1 > x0) || !(y1 > y0)) return null;
+  const tx0 = Math.floor(x0 / s);
+  const ty0 = Math.floor(y0 / s);
+  const tx1 = Math.ceil(x1 / s);
+  const ty1 = Math.ceil(y1 / s);
+  return [(tx0 * s) / widthPx, (ty0 * s) / heightPx, ((tx1 - tx0) * s) / widthPx, ((ty1 - ty0) * s) / heightPx];
+}
+
+/**
  * The face of a whole tablet a tile belongs to: the `dh_face` of the root tileset's child that
  * references the face's tileset (worker/tiles/tablet.py), found up the tile's parents, else
  * read from its content's URL (`…/faces/<name>/3d/…`); null for a face model's tile.
@@ -218,6 +248,9 @@ export async function openTiledModel({
   const perScene = new WeakMap(); // scene → {textures, materials}
   let shading = null;
   const hiddenFaces = new Set(); // a whole tablet's faces not drawn (the page's checkboxes)
+  // Maps of a whole face (not tiled): {trust: {texture} | null} of a face model, one shared
+  // texture per face (the viewer loads it once, assets.js), bound to every tile of the face.
+  let faceMaps = { trust: null };
 
   const relight = {
     name: 'DH_RELIGHT',
@@ -249,11 +282,16 @@ export async function openTiledModel({
           { rotation, normals: maps.normals ?? null, albedo, gloss },
           { seamDepthMm: kind === 'tablet' ? seamDepthMm : 0 },
         );
+        m.userData.tile = tileInfo(tile, obj);
+        // The tile's rectangle of its face's grid (a whole tablet's faces: not yet known here).
+        const faceUv = kind === 'face' ? tileFaceUv(m.userData.tile, index.width_px, index.height_px) : null;
+        if (faceUv) m.uniforms.uFaceUv.value.fromArray(faceUv);
+        m.userData.faceUv = faceUv;
         m.userData.face = {
           curvature: maps.curvature ? curvatureLayers(maps.curvature) : [],
           accessibility: maps.accessibility ?? null,
+          trust: faceUv ? faceMaps.trust : null,
         };
-        m.userData.tile = tileInfo(tile, obj);
         m.userData.faceName = kind === 'tablet' ? tileFace(tile) : null;
         m.visible = !hiddenFaces.has(m.userData.faceName);
         if (shading) applyPartShading(m, m.userData.face, shading, false);
@@ -408,6 +446,19 @@ export async function openTiledModel({
       tiles.errorTarget = camera.isOrthographicCamera ? target / worldPerTilesetUnit : target;
       tiles.update();
     },
+    /**
+     * Maps of the whole face shared by its tiles: `trust` ({texture} from assets.js, or null).
+     * Not counted in the tile cache's bytes (as the base material's quality map is not): one
+     * texture for the model's lifetime, held by the viewer's assets, not by a tile.
+     */
+    setFaceMaps({ trust = null } = {}) {
+      faceMaps = { trust };
+      for (const m of materials) {
+        m.userData.face.trust = m.userData.faceUv ? trust : null;
+        if (shading) applyPartShading(m, m.userData.face, shading, false);
+      }
+      invalidate();
+    },
     /** Apply a shading state ({mode, curvatureScale}) to every tile, now and on load. */
     applyShading(s) {
       const before = shading?.mode;
@@ -517,16 +568,34 @@ function errorPerTexel(tiles, pixelSizeUm) {
 /**
  * The viewer's `model.assets` record for a tiled model, shaped like assets.js' (modes.js reads
  * it for the "missing map" notices): every tile carries its albedo, normals, curvature and
- * accessibility (the contract), so nothing loads lazily; the per-scan quality maps are
- * full-image float arrays and are not streamed.
+ * accessibility (the contract), so those never load lazily. The face's trust map and quality
+ * maps are whole-face images (not tiled): they load on first use (`ensure`), once, and every
+ * tile samples them through its rectangle of the face's grid (tileFaceUv). A whole tablet's
+ * faces' trust maps are not bound to its tiles yet (names.trust stays null there).
+ * @param {object} tiled from openTiledModel
+ * @param {Record<string, string>} [assets] the model's asset name → URL map (the API's)
+ * @param {{signal?: AbortSignal}} [options]
  */
-export function tiledAssets(tiled) {
+export function tiledAssets(tiled, assets = {}, { signal } = {}) {
   const tile = 'tiles (per tile)';
+  const found = classifyAssets(assets);
+  const face = tiled.kind === 'face';
+  const trustName = face ? found.trust : null;
+  const qualityNames = face ? found.quality : [];
   // The curvature scales the page offers (each tile's map and its mip levels, as
   // curvatureLayers); the textures are the tiles' own, the base material gets the blank.
   const blank = tiled.blank;
-  return {
-    names: { curvature: [tile], accessibility: tile, quality: [], height: null },
+  const created = [];
+  const get = (name) => fetchBytes(assets[name], { signal });
+  const out = {
+    names: {
+      curvature: [tile],
+      accessibility: tile,
+      quality: qualityNames,
+      height: null,
+      trust: trustName,
+      trustMeta: face ? found.trustMeta : null,
+    },
     // Textures, never flags: the viewer may put these in the base material's uniforms (shared
     // by the tiles' materials when a tile is made); each tile then gets its own maps.
     normals: blank,
@@ -537,12 +606,39 @@ export function tiledAssets(tiled) {
       { name: 'curvature', texture: blank, lod: 4, label: 'curvature, smoothed over 16 texels' },
     ],
     accessibility: blank,
-    quality: [],
+    // null: present, not loaded yet (modes.js); false / []: the model has none.
+    quality: qualityNames.length ? null : [],
+    trust: trustName ? null : false,
     faces: [],
     parts: [],
-    ensure: () => Promise.resolve(),
-    dispose: () => tiled.dispose(),
   };
+  const pending = new Map();
+  out.ensure = (kind) => {
+    if (out[kind] !== null || !['quality', 'trust'].includes(kind)) return Promise.resolve();
+    if (!pending.has(kind)) {
+      const job = (async () => {
+        if (kind === 'trust') {
+          const trust = await loadTrustMap(get, trustName, out.names.trustMeta);
+          created.push(trust.texture);
+          out.trust = trust;
+          tiled.setFaceMaps({ trust });
+        } else {
+          const maps = await loadQualityMaps(get, qualityNames);
+          for (const q of maps) created.push(q.texture);
+          out.quality = maps;
+        }
+      })();
+      pending.set(kind, job);
+      job.catch(() => pending.delete(kind)); // a failed load may be retried
+    }
+    return pending.get(kind);
+  };
+  out.dispose = () => {
+    tiled.dispose();
+    for (const t of created) disposeTexture(t);
+    created.length = 0;
+  };
+  return out;
 }
 
 /**
