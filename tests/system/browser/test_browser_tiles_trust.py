@@ -164,7 +164,13 @@ def test_trust_and_quality_on_a_streamed_face_show_the_face_maps(trust_page, til
     # finest tiles (512-px tiles meet at pixel 1024, 1024): block centres, and at the zoom
     # pixels 3 px either side of each block edge.
     views = [
-        (W / 2, H / 2, 1, np.arange(BLOCK_PX // 2, H, BLOCK_PX), np.arange(BLOCK_PX // 2, W, BLOCK_PX)),
+        (
+            W / 2,
+            H / 2,
+            1,
+            np.arange(BLOCK_PX // 2, H, BLOCK_PX),
+            np.arange(BLOCK_PX // 2, W, BLOCK_PX),
+        ),
         (1024, 1024, 10, None, None),
     ]
     for cx, cy, zoom, rr, cc in views:
@@ -181,7 +187,11 @@ def test_trust_and_quality_on_a_streamed_face_show_the_face_maps(trust_page, til
         got = classify(colours)
         want = block_class(r, c)
         agree = (got == want).mean()
-        assert agree > 0.95, (zoom, agree, list(zip(r[got != want], c[got != want], strict=True))[:10])
+        assert agree > 0.95, (
+            zoom,
+            agree,
+            list(zip(r[got != want], c[got != want], strict=True))[:10],
+        )
         if zoom > 1:
             if os.environ.get("HAMMURABI_SAVE_SCREENSHOTS"):
                 out = Path(os.environ["HAMMURABI_SAVE_SCREENSHOTS"]) / "viewer-tiles-trust.png"
