@@ -21,11 +21,12 @@ import * as THREE from 'three';
 import { TilesRenderer } from '3d-tiles-renderer/three';
 import { GLTFExtensionsPlugin } from '3d-tiles-renderer/three/plugins';
 import { MeshoptDecoder } from 'meshoptimizer/decoder';
-import { classifyAssets, disposeTexture, fetchBytes, loadQualityMaps, loadTrustMap } from './assets.js';
+import { classifyAssets, disposeTexture, faceAssetPrefix, fetchBytes, loadQualityMaps, loadTrustMap } from './assets.js';
 import { createHeightRows } from './heightRows.js';
 import { applyPartShading, createPartMaterial } from './material.js';
 import { bilinearHeight } from './profile.js';
 import { installFacingError } from './tileFacing.js';
+import { mergeTrustMeta } from './trust.js';
 import { runQueuesPromptly } from './tileQueues.js';
 
 /** Default GPU memory budget of the tile cache (bytes). */
@@ -225,10 +226,13 @@ export async function openTiledModel({
   const tilesetUrl = resolveTilesUrl(indexUrl, index.tileset);
   const kind = index.faces ? 'tablet' : 'face';
   let pixelSizeUm = Number(index.pixel_size_um);
-  // The faces of one tablet are scanned with one pixel size; the first face's index says it
-  // (fetched while the root tileset loads, not before).
-  const facePixelSize = kind === 'tablet' ? firstFacePixelSizeUm(index, indexUrl, signal) : null;
-  facePixelSize?.catch(() => {}); // awaited below; not unhandled if the root fails first
+  // A whole tablet's faces' own index.json (their grids, for the whole-face maps' uv); the
+  // faces of one tablet are scanned with one pixel size, the first face's says it (fetched
+  // while the root tileset loads, not before).
+  const faceIndexes = kind === 'tablet' ? fetchFaceIndexes(index, indexUrl, signal) : null;
+  faceIndexes?.catch(() => {}); // awaited below; not unhandled if the root fails first
+  /** face name (dh_face) → its index.json, once fetched */
+  let faceGrids = new Map();
 
   const tiles = new TilesRenderer(tilesetUrl);
   runQueuesPromptly(tiles); // a tile's steps need not wait for frames (tileQueues.js)
@@ -248,9 +252,9 @@ export async function openTiledModel({
   const perScene = new WeakMap(); // scene → {textures, materials}
   let shading = null;
   const hiddenFaces = new Set(); // a whole tablet's faces not drawn (the page's checkboxes)
-  // Maps of a whole face (not tiled): {trust: {texture} | null} of a face model, one shared
-  // texture per face (the viewer loads it once, assets.js), bound to every tile of the face.
-  let faceMaps = { trust: null };
+  // Maps of a whole face (not tiled): its trust map {texture} by face name ('' for a face
+  // model), one shared texture per face (loaded once, tiledAssets), bound to its every tile.
+  let trustByFace = new Map();
 
   const relight = {
     name: 'DH_RELIGHT',
@@ -283,16 +287,17 @@ export async function openTiledModel({
           { seamDepthMm: kind === 'tablet' ? seamDepthMm : 0 },
         );
         m.userData.tile = tileInfo(tile, obj);
-        // The tile's rectangle of its face's grid (a whole tablet's faces: not yet known here).
-        const faceUv = kind === 'face' ? tileFaceUv(m.userData.tile, index.width_px, index.height_px) : null;
+        m.userData.faceName = kind === 'tablet' ? tileFace(tile) : null;
+        // The tile's rectangle of its face's grid (whole-face maps: trust, quality).
+        const grid = kind === 'face' ? index : faceGrids.get(m.userData.faceName);
+        const faceUv = grid ? tileFaceUv(m.userData.tile, grid.width_px, grid.height_px) : null;
         if (faceUv) m.uniforms.uFaceUv.value.fromArray(faceUv);
         m.userData.faceUv = faceUv;
         m.userData.face = {
           curvature: maps.curvature ? curvatureLayers(maps.curvature) : [],
           accessibility: maps.accessibility ?? null,
-          trust: faceUv ? faceMaps.trust : null,
+          trust: faceUv ? (trustByFace.get(m.userData.faceName ?? '') ?? null) : null,
         };
-        m.userData.faceName = kind === 'tablet' ? tileFace(tile) : null;
         m.visible = !hiddenFaces.has(m.userData.faceName);
         if (shading) applyPartShading(m, m.userData.face, shading, false);
         obj.material = m;
@@ -342,9 +347,10 @@ export async function openTiledModel({
   // The renderer needs update() calls to start loading; a camera-less one fetches the root.
   tiles.update();
   await abortable(rootLoaded, signal, () => tiles.dispose());
-  if (facePixelSize) {
+  if (faceIndexes) {
     try {
-      pixelSizeUm = await facePixelSize;
+      faceGrids = await faceIndexes;
+      pixelSizeUm = Number(faceGrids.values().next().value.pixel_size_um);
     } catch (err) {
       tiles.dispose();
       throw err;
@@ -447,14 +453,15 @@ export async function openTiledModel({
       tiles.update();
     },
     /**
-     * Maps of the whole face shared by its tiles: `trust` ({texture} from assets.js, or null).
-     * Not counted in the tile cache's bytes (as the base material's quality map is not): one
-     * texture for the model's lifetime, held by the viewer's assets, not by a tile.
+     * Maps of a whole face shared by its tiles: `trust`, a Map face name → {texture} (a face
+     * model's under ''). Not counted in the tile cache's bytes (as the base material's
+     * quality map is not): one texture per face for the model's lifetime, held by the
+     * model's assets (tiledAssets), not by a tile.
      */
-    setFaceMaps({ trust = null } = {}) {
-      faceMaps = { trust };
+    setFaceMaps({ trust = new Map() } = {}) {
+      trustByFace = trust;
       for (const m of materials) {
-        m.userData.face.trust = m.userData.faceUv ? trust : null;
+        m.userData.face.trust = m.userData.faceUv ? (trust.get(m.userData.faceName ?? '') ?? null) : null;
         if (shading) applyPartShading(m, m.userData.face, shading, false);
       }
       invalidate();
@@ -535,11 +542,18 @@ export async function openTiledModel({
   };
 }
 
-async function firstFacePixelSizeUm(index, indexUrl, signal) {
-  const faceUrl = resolveTilesUrl(indexUrl, Object.values(index.faces)[0]);
-  const r = await fetch(faceUrl, { signal, credentials: 'same-origin' });
-  if (!r.ok) throw new Error(`${faceUrl}: HTTP ${r.status}`);
-  return Number(validateIndex(await r.json()).pixel_size_um);
+/** A whole tablet's faces' index.json, by face name (the last part of its folder, as the
+ * root tileset's `dh_face`: worker/tiles/tablet.py), in the index's order. */
+async function fetchFaceIndexes(index, indexUrl, signal) {
+  const entries = await Promise.all(
+    Object.entries(index.faces).map(async ([folder, path]) => {
+      const faceUrl = resolveTilesUrl(indexUrl, path);
+      const r = await fetch(faceUrl, { signal, credentials: 'same-origin' });
+      if (!r.ok) throw new Error(`${faceUrl}: HTTP ${r.status}`);
+      return [folder.split('/').pop(), validateIndex(await r.json())];
+    }),
+  );
+  return new Map(entries);
 }
 
 /**
@@ -571,7 +585,8 @@ function errorPerTexel(tiles, pixelSizeUm) {
  * accessibility (the contract), so those never load lazily. The face's trust map and quality
  * maps are whole-face images (not tiled): they load on first use (`ensure`), once, and every
  * tile samples them through its rectangle of the face's grid (tileFaceUv). A whole tablet's
- * faces' trust maps are not bound to its tiles yet (names.trust stays null there).
+ * tiles get their own face's trust map (faces/<label>/trust.png); its quality maps are not
+ * bound to its tiles yet.
  * @param {object} tiled from openTiledModel
  * @param {Record<string, string>} [assets] the model's asset name → URL map (the API's)
  * @param {{signal?: AbortSignal}} [options]
@@ -580,7 +595,17 @@ export function tiledAssets(tiled, assets = {}, { signal } = {}) {
   const tile = 'tiles (per tile)';
   const found = classifyAssets(assets);
   const face = tiled.kind === 'face';
-  const trustName = face ? found.trust : null;
+  // A face model's trust map ('' → names), or each face's of a whole tablet (faces/<label>/).
+  const trustNames = new Map();
+  if (face && found.trust) trustNames.set('', [found.trust, found.trustMeta]);
+  for (const name of face ? [] : tiled.faceNames) {
+    const prefix = faceAssetPrefix(name);
+    if (assets[`${prefix}/trust.png`]) {
+      trustNames.set(name, [`${prefix}/trust.png`, assets[`${prefix}/trust.json`] ? `${prefix}/trust.json` : null]);
+    }
+  }
+  const trustName = trustNames.size ? [...trustNames.values()][0][0] : null;
+  // The quality maps: a face model's (one grid); a whole tablet's faces' are not bound yet.
   const qualityNames = face ? found.quality : [];
   // The curvature scales the page offers (each tile's map and its mip levels, as
   // curvatureLayers); the textures are the tiles' own, the base material gets the blank.
@@ -594,7 +619,7 @@ export function tiledAssets(tiled, assets = {}, { signal } = {}) {
       quality: qualityNames,
       height: null,
       trust: trustName,
-      trustMeta: face ? found.trustMeta : null,
+      trustMeta: trustNames.size ? [...trustNames.values()][0][1] : null,
     },
     // Textures, never flags: the viewer may put these in the base material's uniforms (shared
     // by the tiles' materials when a tile is made); each tile then gets its own maps.
@@ -618,10 +643,16 @@ export function tiledAssets(tiled, assets = {}, { signal } = {}) {
     if (!pending.has(kind)) {
       const job = (async () => {
         if (kind === 'trust') {
-          const trust = await loadTrustMap(get, trustName, out.names.trustMeta);
-          created.push(trust.texture);
-          out.trust = trust;
-          tiled.setFaceMaps({ trust });
+          const byFace = new Map();
+          for (const [name, [png, meta]] of trustNames) {
+            const trust = await loadTrustMap(get, png, meta);
+            created.push(trust.texture);
+            byFace.set(name, trust);
+          }
+          const all = [...byFace.values()];
+          // One legend for a whole tablet's faces (encoded on the same tops: trust.js).
+          out.trust = { texture: all[0].texture, meta: face ? all[0].meta : mergeTrustMeta(all.map((t) => t.meta)) };
+          tiled.setFaceMaps({ trust: byFace });
         } else {
           const maps = await loadQualityMaps(get, qualityNames);
           for (const q of maps) created.push(q.texture);

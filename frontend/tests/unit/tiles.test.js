@@ -163,8 +163,23 @@ describe('tiledAssets', () => {
     expect(a.quality).toEqual([]);
   });
 
-  it("does not offer a whole tablet's (per-face maps are not bound to its tiles yet)", () => {
-    const a = tiledAssets(fake('tablet'), { ...assets, 'faces/obverse/trust.png': '/a/faces/obverse/trust.png' });
+  it("offers a whole tablet's faces' own trust maps, not its quality maps", () => {
+    const a = tiledAssets(
+      { ...fake('tablet'), faceNames: ['obverse', 'left edge'] },
+      {
+        ...assets,
+        'faces/obverse/trust.png': '/a/faces/obverse/trust.png',
+        'faces/left_edge/trust.png': '/a/faces/left_edge/trust.png',
+        'faces/left_edge/trust.json': '/a/faces/left_edge/trust.json',
+      },
+    );
+    expect(a.names.trust).toBe('faces/obverse/trust.png'); // a face's, not the top-level one
+    expect(a.trust).toBeNull();
+    expect(a.quality).toEqual([]);
+  });
+
+  it('says a whole tablet whose faces have none has none', () => {
+    const a = tiledAssets({ ...fake('tablet'), faceNames: ['obverse'] }, assets);
     expect(a.names.trust).toBeNull();
     expect(a.trust).toBe(false);
   });

@@ -208,3 +208,97 @@ def test_trust_and_quality_on_a_streamed_face_show_the_face_maps(trust_page, til
             assert (yellow == want_q).mean() > 0.95, (yellow == want_q).mean()
             page.evaluate("() => window.hammurabi.viewer.setShading({ mode: 'trust' })")
     assert not errors, errors
+
+
+def write_block_trust(path: Path, on: np.ndarray, shift: int) -> None:
+    """A made-up trust.png: block_class shifted by ``shift`` classes (faces told apart)."""
+    h, w = on.shape
+    r, c = np.mgrid[0:h, 0:w]
+    rgba = np.zeros((h, w, 4), np.uint8)
+    rgba[..., 0] = (block_class(r, c) - 1 + shift) % 5 + 1
+    rgba[..., 3] = np.where(on, 255, 0)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    ok, png = cv2.imencode(".png", cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))
+    assert ok
+    path.write_bytes(png.tobytes())
+
+
+@pytest.fixture(scope="module")
+def tablet_trust(library, tmp_path_factory):
+    """A streamed whole tablet of two faces (as test_browser_tiles.py's), each with its own
+    trust.png under faces/<label>/ on its own grid (the reverse 640 × 448, the obverse 768 × 512)."""
+    from worker.tiles.tablet import build_tablet_tiles
+
+    tmp = tmp_path_factory.mktemp("tablet_trust")
+    faces, heights = {}, {}
+    sizes = {"obverse": (768, 512), "reverse": (640, 448)}
+    for k, (name, (w, h)) in enumerate(sizes.items()):
+        d = tmp / name
+        report = write_large_face(d, width_px=w, height_px=h, seed=21 + k)
+        faces[name] = d
+        heights[name] = np.load(d / "height.npy")
+    s_mm = report["pixel_size_um"] / 1000
+    w_mm = sizes["reverse"][0] * s_mm
+    turn = np.diag([-1.0, 1.0, -1.0, 1.0])  # 180° about y: x → w − x, z → 12 mm − z
+    turn[0, 3], turn[2, 3] = w_mm, 12.0
+    model_dir = tmp / "tablet"
+    model_dir.mkdir()
+    (model_dir / "model.glb").write_bytes((faces["obverse"] / "model.glb").read_bytes())
+    (model_dir / "report.json").write_text('{"scans": ["obverse", "reverse"]}')
+    build_tablet_tiles(
+        model_dir,
+        {"faces/obverse": (faces["obverse"], np.eye(4)), "faces/reverse": (faces["reverse"], turn)},
+    )
+    for k, name in enumerate(sizes):
+        write_block_trust(model_dir / "faces" / name / "trust.png", np.isfinite(heights[name]), k)
+    model_id = library.add_tablet_model("P999003", model_dir)
+    return SimpleNamespace(id=model_id, heights=heights, s_mm=s_mm, turn=turn)
+
+
+def test_trust_on_a_streamed_whole_tablet_uses_each_faces_map(
+    browser, library, tablet_trust, tools
+):
+    t = tablet_trust
+    context = browser.new_context(viewport=VIEWPORT)
+    page = context.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    try:
+        tablet_id = library.tablets["P999003"]
+        page.goto(f"{library.url}/tablet.html?id={tablet_id}#m={t.id}")
+        page.wait_for_function(
+            "() => document.getElementById('viewer').dataset.loaded", timeout=60000
+        )
+        assert not page.locator("#mode option[value='trust']").is_disabled()
+        page.select_option("#mode", "trust")
+        page.wait_for_function("() => window.hammurabi.viewer.model.assets.trust")
+        for k, (view, to_tablet) in enumerate((("obverse", np.eye(4)), ("reverse", t.turn))):
+            page.evaluate("v => window.hammurabi.viewer.setView(v)", view)
+            settle_tiles(page)
+            hgt = t.heights[view]
+            box = page.locator("#viewer").bounding_box()
+            px = tools.canvas_pixels(page)
+            rows = np.arange(BLOCK_PX // 2, hgt.shape[0], BLOCK_PX)
+            cols = np.arange(BLOCK_PX // 2, hgt.shape[1], BLOCK_PX)
+            got, want = [], []
+            for r in rows:
+                for c in cols:
+                    if not np.isfinite(hgt[max(0, r - 3) : r + 4, max(0, c - 3) : c + 4]).all():
+                        continue
+                    p = to_tablet @ np.array([c * t.s_mm, r * t.s_mm, -hgt[r, c] / 1000, 1.0])
+                    x, y = tools.screen_of(page, p[:3].tolist())
+                    ix, iy = int(round(x - box["x"])), int(round(y - box["y"]))
+                    if 0 <= iy < px.shape[0] and 0 <= ix < px.shape[1]:
+                        got.append(classify(px[iy, ix][None])[0])
+                        want.append((block_class(r, c) - 1 + k) % 5 + 1)
+            assert len(got) >= 20, (view, len(got))
+            agree = (np.array(got) == np.array(want)).mean()
+            assert agree > 0.9, (view, agree)
+            if view == "reverse" and os.environ.get("HAMMURABI_SAVE_SCREENSHOTS"):
+                out = (
+                    Path(os.environ["HAMMURABI_SAVE_SCREENSHOTS"]) / "viewer-tiles-tablet-trust.png"
+                )
+                page.screenshot(path=str(out))
+        assert not errors, errors
+    finally:
+        context.close()
