@@ -97,6 +97,39 @@ async function bytesToTexture(buffer, { srgb, nearest = false }) {
 }
 
 /**
+ * A model's trust map (trust.png, nearest-sampled: its red channel holds class codes) and its
+ * legend (trust.json, {} when absent): {texture, meta}.
+ * @param {(name: string) => Promise<ArrayBuffer>} get
+ */
+export async function loadTrustMap(get, pngName, metaName) {
+  const [png, meta] = await Promise.all([
+    get(pngName),
+    metaName ? get(metaName).then((b) => JSON.parse(new TextDecoder().decode(b))) : {},
+  ]);
+  return { texture: await bytesToTexture(png, { srgb: false, nearest: true }), meta };
+}
+
+/**
+ * A model's quality maps, each {name, texture, range}: .npy as float textures with their
+ * robust range, .png as 8-bit on [0, 1].
+ * @param {(name: string) => Promise<ArrayBuffer>} get
+ * @param {string[]} qualityNames
+ */
+export async function loadQualityMaps(get, qualityNames) {
+  const maps = [];
+  for (const name of qualityNames) {
+    const buf = await get(name);
+    if (name.endsWith('.npy')) {
+      const { texture, range } = npyToTexture(buf);
+      maps.push({ name, texture, range });
+    } else {
+      maps.push({ name, texture: await bytesToTexture(buf, { srgb: false }), range: [0, 1] });
+    }
+  }
+  return maps;
+}
+
+/**
  * A float map (.npy, rows × cols) as a single-channel float texture plus a robust display
  * range (2nd to 98th percentile of its finite values).
  */
@@ -250,7 +283,7 @@ async function glbToGeometry(buffer) {
   return { geometry, glbAlbedo, parts: multi ? partInfo : [] };
 }
 
-function disposeTexture(t) {
+export function disposeTexture(t) {
   if (!t) return;
   t.dispose();
   if (typeof ImageBitmap !== 'undefined' && t.image instanceof ImageBitmap) t.image.close();
@@ -402,11 +435,8 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
         out.trust = false;
         return;
       }
-      const [png, meta] = await Promise.all([
-        get(names.trust),
-        names.trustMeta ? get(names.trustMeta).then((b) => JSON.parse(new TextDecoder().decode(b))) : {},
-      ]);
-      out.trust = { texture: track(await bytesToTexture(png, { srgb: false, nearest: true })), meta };
+      out.trust = await loadTrustMap(get, names.trust, names.trustMeta);
+      track(out.trust.texture);
       return;
     }
     if (out.faces.length && kind !== 'quality') {
@@ -437,17 +467,8 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
     } else if (kind === 'curvature') {
       out.curvature = await curvatureLayers(names.curvature);
     } else if (kind === 'quality') {
-      const maps = [];
-      for (const name of names.quality) {
-        const buf = await get(name);
-        if (name.endsWith('.npy')) {
-          const { texture, range } = npyToTexture(buf);
-          maps.push({ name, texture: track(texture), range });
-        } else {
-          maps.push({ name, texture: track(await bytesToTexture(buf, { srgb: false })), range: [0, 1] });
-        }
-      }
-      out.quality = maps;
+      out.quality = await loadQualityMaps(get, names.quality);
+      for (const q of out.quality) track(q.texture);
     }
   }
 

@@ -55,6 +55,10 @@ const fragmentShader = /* glsl */ `
   uniform sampler2D uAccessMap;
   uniform sampler2D uQualityMap;
   uniform vec2 uQualityRange;
+  // Tile-local uv → the face's whole image grid (offset xy, scale zw): a streamed tile's maps
+  // cover its own rectangle, the trust and quality maps the whole face (tiles.js tileFaceUv);
+  // (0, 0, 1, 1) on a single mesh, whose uv already span the face.
+  uniform vec4 uFaceUv;
   // Each lazily loaded map is present (bound for the main mode and for the lens' mode).
   uniform bool uHasCurvature;
   uniform bool uHasAccess;
@@ -89,6 +93,8 @@ const fragmentShader = /* glsl */ `
     vec4 clip = uProjection * vec4(p, 1.0);
     gl_FragDepth = clamp(0.5 * clip.z / clip.w + 0.5, 0.0, 1.0);
   }
+
+  vec2 faceUv() { return uFaceUv.xy + uFaceUv.zw * vUv; }
 
   vec3 objectNormal(vec2 uv, float lod) {
     return textureLod(uNormalMap, uv, lod).xyz * 2.0 - 1.0;
@@ -189,7 +195,7 @@ const fragmentShader = /* glsl */ `
       colour = fromSrgb(nObj * 0.5 + 0.5); // shown as the PNG's own values after sRGB output
     } else if (mode == 7) {   // quality map on a sequential ramp
       if (uHasQuality) {
-        float q = texture(uQualityMap, vUv).r;
+        float q = texture(uQualityMap, faceUv()).r;
         float span = max(uQualityRange.y - uQualityRange.x, 1e-20);
         colour = q != q ? vec3(0.2) : sequential((q - uQualityRange.x) / span);
       } else colour = lit(uClay, n) * 0.5;
@@ -237,6 +243,7 @@ export function createRelightMaterial() {
       uAccessMap: { value: blank },
       uQualityMap: { value: blank },
       uQualityRange: { value: new THREE.Vector2(0, 1) },
+      uFaceUv: { value: new THREE.Vector4(0, 0, 1, 1) },
       uHasCurvature: { value: false },
       uHasAccess: { value: false },
       uHasQuality: { value: false },
@@ -282,6 +289,7 @@ export const PART_UNIFORMS = Object.freeze([
   'uGlossExponent',
   'uTrustMap', // each face its own trust map (worker/register/run.py), on its own grid
   'uHasTrust',
+  'uFaceUv', // a streamed tile's rectangle of its face's grid (tiles.js tileFaceUv)
 ]);
 
 /**

@@ -119,8 +119,9 @@ export function lensMissingMessage(lensMode, mainMode, assets, errors = {}) {
 /**
  * Why a mode cannot be chosen on this model, or null when it can: a mode whose maps the
  * model does not have at all (the page disables it in its selects, with this as the reason).
- * Only trust is decided here: a model without any trust.png (a streamed model, a model made
- * before worker/trust_assets.py) has nothing to show in it.
+ * Only trust is decided here: a model without any trust.png (a model made before
+ * worker/trust_assets.py; a streamed face or whole tablet gets its tiles' from the face's,
+ * tiles.js) has nothing to show in it.
  * @param {string} mode
  * @param {object} assets the loaded-asset record
  * @param {{streamed?: boolean}} [options] streamed: the model is streamed (tiles.js)
@@ -132,6 +133,6 @@ export function unavailableModeReason(mode, assets, { streamed = false } = {}) {
   const has = faces.length ? faces.some((f) => f.assets.trust) : Boolean(assets.names?.trust);
   if (has) return null;
   return streamed
-    ? 'Trust: this streamed model has no trust map (trust.png) for its tiles yet.'
+    ? 'Trust: this streamed model has no trust map (trust.png), made by the worker from its quality maps.'
     : 'Trust: this model has no trust map (trust.png), made by the worker from its quality maps.';
 }

@@ -97,7 +97,7 @@ export const EXTRAS_GLSL = /* glsl */ `
   // trust.png: sources as class colours lit by the normals (the wedges stay readable), or
   // σ_h / |fringe − final| on the sequential ramp (grey: no fringe height).
   vec3 trustColour(vec3 n) {
-    vec4 t = texture(uTrustMap, vUv);
+    vec4 t = texture(uTrustMap, faceUv()); // the face's grid (material.js uFaceUv)
     float shade = 0.45 + 0.55 * max(dot(n, normalize(uLightDir)), 0.0);
     if (t.a < 0.5) return vec3(0.05);
     if (uTrustLayer == 0) {

@@ -21,10 +21,12 @@ import * as THREE from 'three';
 import { TilesRenderer } from '3d-tiles-renderer/three';
 import { GLTFExtensionsPlugin } from '3d-tiles-renderer/three/plugins';
 import { MeshoptDecoder } from 'meshoptimizer/decoder';
+import { classifyAssets, disposeTexture, faceAssetPrefix, fetchBytes, loadQualityMaps, loadTrustMap } from './assets.js';
 import { createHeightRows } from './heightRows.js';
 import { applyPartShading, createPartMaterial } from './material.js';
 import { bilinearHeight } from './profile.js';
 import { installFacingError } from './tileFacing.js';
+import { mergeTrustMeta } from './trust.js';
 import { runQueuesPromptly } from './tileQueues.js';
 
 /** Default GPU memory budget of the tile cache (bytes). */
@@ -125,6 +127,35 @@ export function tileInfo(tile, object = null) {
 }
 
 /**
+ * Where a tile's uv fall on its face's whole image grid, as [offsetU, offsetV, scaleU, scaleV]
+ * (face uv = offset + scale · tile uv; the shader's `uFaceUv`), so that maps of the whole face
+ * (trust.png, quality/*.npy: one texture per face, not per tile) are sampled under a tile.
+ *
+ * A tile of pixel step s covers texels [tx0, tx1) of its level, tx0 = ⌊x0/s⌋, tx1 = ⌈x1/s⌉ of
+ * its px_rect [x0, y0, x1, y1); its uv put texel t's centre at (t − tx0 + ½)/(tx1 − tx0)
+ * (worker/tiles/tile_mesh.py), and that texel averages full-resolution pixels [t·s, (t+1)·s),
+ * whose centre on the face's grid (width W px, pixel c at u = (c + ½)/W, assets.js) is
+ * u = (t·s + s/2)/W. Solving for u: u = tx0·s/W + (tx1 − tx0)·s/W · u_tile. (At the right and
+ * bottom edges a texel's pixels may stop at W: its centre is then off by under s/2 pixels.)
+ * @param {{px_rect: number[], pixel_step: number} | null} info the tile's dh_tile
+ * @param {number} widthPx W of the face's grid
+ * @param {number} heightPx H
+ * @returns {number[] | null} null when the tile does not say its rectangle
+ */
+export function tileFaceUv(info, widthPx, heightPx) {
+  const s = Number(info?.pixel_step);
+  const r = info?.px_rect;
+  if (!(s > 0) || !Array.isArray(r) || r.length !== 4 || !(widthPx > 0) || !(heightPx > 0)) return null;
+  const [x0, y0, x1, y1] = r.map(Number);
+  if (![x0, y0, x1, y1].every(Number.isFinite) || !(x1 > x0) || !(y1 > y0)) return null;
+  const tx0 = Math.floor(x0 / s);
+  const ty0 = Math.floor(y0 / s);
+  const tx1 = Math.ceil(x1 / s);
+  const ty1 = Math.ceil(y1 / s);
+  return [(tx0 * s) / widthPx, (ty0 * s) / heightPx, ((tx1 - tx0) * s) / widthPx, ((ty1 - ty0) * s) / heightPx];
+}
+
+/**
  * The face of a whole tablet a tile belongs to: the `dh_face` of the root tileset's child that
  * references the face's tileset (worker/tiles/tablet.py), found up the tile's parents, else
  * read from its content's URL (`…/faces/<name>/3d/…`); null for a face model's tile.
@@ -195,10 +226,13 @@ export async function openTiledModel({
   const tilesetUrl = resolveTilesUrl(indexUrl, index.tileset);
   const kind = index.faces ? 'tablet' : 'face';
   let pixelSizeUm = Number(index.pixel_size_um);
-  // The faces of one tablet are scanned with one pixel size; the first face's index says it
-  // (fetched while the root tileset loads, not before).
-  const facePixelSize = kind === 'tablet' ? firstFacePixelSizeUm(index, indexUrl, signal) : null;
-  facePixelSize?.catch(() => {}); // awaited below; not unhandled if the root fails first
+  // A whole tablet's faces' own index.json (their grids, for the whole-face maps' uv); the
+  // faces of one tablet are scanned with one pixel size, the first face's says it (fetched
+  // while the root tileset loads, not before).
+  const faceIndexes = kind === 'tablet' ? fetchFaceIndexes(index, indexUrl, signal) : null;
+  faceIndexes?.catch(() => {}); // awaited below; not unhandled if the root fails first
+  /** face name (dh_face) → its index.json, once fetched */
+  let faceGrids = new Map();
 
   const tiles = new TilesRenderer(tilesetUrl);
   runQueuesPromptly(tiles); // a tile's steps need not wait for frames (tileQueues.js)
@@ -218,6 +252,9 @@ export async function openTiledModel({
   const perScene = new WeakMap(); // scene → {textures, materials}
   let shading = null;
   const hiddenFaces = new Set(); // a whole tablet's faces not drawn (the page's checkboxes)
+  // Maps of a whole face (not tiled): its trust map {texture} by face name ('' for a face
+  // model), one shared texture per face (loaded once, tiledAssets), bound to its every tile.
+  let trustByFace = new Map();
 
   const relight = {
     name: 'DH_RELIGHT',
@@ -249,12 +286,18 @@ export async function openTiledModel({
           { rotation, normals: maps.normals ?? null, albedo, gloss },
           { seamDepthMm: kind === 'tablet' ? seamDepthMm : 0 },
         );
+        m.userData.tile = tileInfo(tile, obj);
+        m.userData.faceName = kind === 'tablet' ? tileFace(tile) : null;
+        // The tile's rectangle of its face's grid (whole-face maps: trust, quality).
+        const grid = kind === 'face' ? index : faceGrids.get(m.userData.faceName);
+        const faceUv = grid ? tileFaceUv(m.userData.tile, grid.width_px, grid.height_px) : null;
+        if (faceUv) m.uniforms.uFaceUv.value.fromArray(faceUv);
+        m.userData.faceUv = faceUv;
         m.userData.face = {
           curvature: maps.curvature ? curvatureLayers(maps.curvature) : [],
           accessibility: maps.accessibility ?? null,
+          trust: faceUv ? (trustByFace.get(m.userData.faceName ?? '') ?? null) : null,
         };
-        m.userData.tile = tileInfo(tile, obj);
-        m.userData.faceName = kind === 'tablet' ? tileFace(tile) : null;
         m.visible = !hiddenFaces.has(m.userData.faceName);
         if (shading) applyPartShading(m, m.userData.face, shading, false);
         obj.material = m;
@@ -304,9 +347,10 @@ export async function openTiledModel({
   // The renderer needs update() calls to start loading; a camera-less one fetches the root.
   tiles.update();
   await abortable(rootLoaded, signal, () => tiles.dispose());
-  if (facePixelSize) {
+  if (faceIndexes) {
     try {
-      pixelSizeUm = await facePixelSize;
+      faceGrids = await faceIndexes;
+      pixelSizeUm = Number(faceGrids.values().next().value.pixel_size_um);
     } catch (err) {
       tiles.dispose();
       throw err;
@@ -408,6 +452,20 @@ export async function openTiledModel({
       tiles.errorTarget = camera.isOrthographicCamera ? target / worldPerTilesetUnit : target;
       tiles.update();
     },
+    /**
+     * Maps of a whole face shared by its tiles: `trust`, a Map face name → {texture} (a face
+     * model's under ''). Not counted in the tile cache's bytes (as the base material's
+     * quality map is not): one texture per face for the model's lifetime, held by the
+     * model's assets (tiledAssets), not by a tile.
+     */
+    setFaceMaps({ trust = new Map() } = {}) {
+      trustByFace = trust;
+      for (const m of materials) {
+        m.userData.face.trust = m.userData.faceUv ? (trust.get(m.userData.faceName ?? '') ?? null) : null;
+        if (shading) applyPartShading(m, m.userData.face, shading, false);
+      }
+      invalidate();
+    },
     /** Apply a shading state ({mode, curvatureScale}) to every tile, now and on load. */
     applyShading(s) {
       const before = shading?.mode;
@@ -484,11 +542,18 @@ export async function openTiledModel({
   };
 }
 
-async function firstFacePixelSizeUm(index, indexUrl, signal) {
-  const faceUrl = resolveTilesUrl(indexUrl, Object.values(index.faces)[0]);
-  const r = await fetch(faceUrl, { signal, credentials: 'same-origin' });
-  if (!r.ok) throw new Error(`${faceUrl}: HTTP ${r.status}`);
-  return Number(validateIndex(await r.json()).pixel_size_um);
+/** A whole tablet's faces' index.json, by face name (the last part of its folder, as the
+ * root tileset's `dh_face`: worker/tiles/tablet.py), in the index's order. */
+async function fetchFaceIndexes(index, indexUrl, signal) {
+  const entries = await Promise.all(
+    Object.entries(index.faces).map(async ([folder, path]) => {
+      const faceUrl = resolveTilesUrl(indexUrl, path);
+      const r = await fetch(faceUrl, { signal, credentials: 'same-origin' });
+      if (!r.ok) throw new Error(`${faceUrl}: HTTP ${r.status}`);
+      return [folder.split('/').pop(), validateIndex(await r.json())];
+    }),
+  );
+  return new Map(entries);
 }
 
 /**
@@ -517,16 +582,45 @@ function errorPerTexel(tiles, pixelSizeUm) {
 /**
  * The viewer's `model.assets` record for a tiled model, shaped like assets.js' (modes.js reads
  * it for the "missing map" notices): every tile carries its albedo, normals, curvature and
- * accessibility (the contract), so nothing loads lazily; the per-scan quality maps are
- * full-image float arrays and are not streamed.
+ * accessibility (the contract), so those never load lazily. The face's trust map and quality
+ * maps are whole-face images (not tiled): they load on first use (`ensure`), once, and every
+ * tile samples them through its rectangle of the face's grid (tileFaceUv). A whole tablet's
+ * tiles get their own face's trust map (faces/<label>/trust.png); its quality maps are not
+ * bound to its tiles yet.
+ * @param {object} tiled from openTiledModel
+ * @param {Record<string, string>} [assets] the model's asset name → URL map (the API's)
+ * @param {{signal?: AbortSignal}} [options]
  */
-export function tiledAssets(tiled) {
+export function tiledAssets(tiled, assets = {}, { signal } = {}) {
   const tile = 'tiles (per tile)';
+  const found = classifyAssets(assets);
+  const face = tiled.kind === 'face';
+  // A face model's trust map ('' → names), or each face's of a whole tablet (faces/<label>/).
+  const trustNames = new Map();
+  if (face && found.trust) trustNames.set('', [found.trust, found.trustMeta]);
+  for (const name of face ? [] : tiled.faceNames) {
+    const prefix = faceAssetPrefix(name);
+    if (assets[`${prefix}/trust.png`]) {
+      trustNames.set(name, [`${prefix}/trust.png`, assets[`${prefix}/trust.json`] ? `${prefix}/trust.json` : null]);
+    }
+  }
+  const trustName = trustNames.size ? [...trustNames.values()][0][0] : null;
+  // The quality maps: a face model's (one grid); a whole tablet's faces' are not bound yet.
+  const qualityNames = face ? found.quality : [];
   // The curvature scales the page offers (each tile's map and its mip levels, as
   // curvatureLayers); the textures are the tiles' own, the base material gets the blank.
   const blank = tiled.blank;
-  return {
-    names: { curvature: [tile], accessibility: tile, quality: [], height: null },
+  const created = [];
+  const get = (name) => fetchBytes(assets[name], { signal });
+  const out = {
+    names: {
+      curvature: [tile],
+      accessibility: tile,
+      quality: qualityNames,
+      height: null,
+      trust: trustName,
+      trustMeta: trustNames.size ? [...trustNames.values()][0][1] : null,
+    },
     // Textures, never flags: the viewer may put these in the base material's uniforms (shared
     // by the tiles' materials when a tile is made); each tile then gets its own maps.
     normals: blank,
@@ -537,12 +631,45 @@ export function tiledAssets(tiled) {
       { name: 'curvature', texture: blank, lod: 4, label: 'curvature, smoothed over 16 texels' },
     ],
     accessibility: blank,
-    quality: [],
+    // null: present, not loaded yet (modes.js); false / []: the model has none.
+    quality: qualityNames.length ? null : [],
+    trust: trustName ? null : false,
     faces: [],
     parts: [],
-    ensure: () => Promise.resolve(),
-    dispose: () => tiled.dispose(),
   };
+  const pending = new Map();
+  out.ensure = (kind) => {
+    if (out[kind] !== null || !['quality', 'trust'].includes(kind)) return Promise.resolve();
+    if (!pending.has(kind)) {
+      const job = (async () => {
+        if (kind === 'trust') {
+          const byFace = new Map();
+          for (const [name, [png, meta]] of trustNames) {
+            const trust = await loadTrustMap(get, png, meta);
+            created.push(trust.texture);
+            byFace.set(name, trust);
+          }
+          const all = [...byFace.values()];
+          // One legend for a whole tablet's faces (encoded on the same tops: trust.js).
+          out.trust = { texture: all[0].texture, meta: face ? all[0].meta : mergeTrustMeta(all.map((t) => t.meta)) };
+          tiled.setFaceMaps({ trust: byFace });
+        } else {
+          const maps = await loadQualityMaps(get, qualityNames);
+          for (const q of maps) created.push(q.texture);
+          out.quality = maps;
+        }
+      })();
+      pending.set(kind, job);
+      job.catch(() => pending.delete(kind)); // a failed load may be retried
+    }
+    return pending.get(kind);
+  };
+  out.dispose = () => {
+    tiled.dispose();
+    for (const t of created) disposeTexture(t);
+    created.length = 0;
+  };
+  return out;
 }
 
 /**

@@ -539,7 +539,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     const views = availableViews(tiled.kind);
     // A whole tablet's faces get the checkboxes of the single-mesh path (parts.js).
     const parts = tiled.faceNames.length > 1 ? createPartToggles(tiled.faceNames) : null;
-    model = { mesh: tiled.object, tiles: tiled, assets: tiledAssets(tiled), box: tiled.box, radius: tiled.radius, errors: {}, parts, partMaterials: [], views };
+    model = { mesh: tiled.object, tiles: tiled, assets: tiledAssets(tiled, assets, { signal }), box: tiled.box, radius: tiled.radius, errors: {}, parts, partMaterials: [], views };
     material.uniforms.uHeightRange.value.set(-tiled.box.max[2], -tiled.box.min[2]);
     setShading({});
     setView('obverse');
