@@ -93,26 +93,37 @@ export function bindScholarTools(viewer, context) {
     }
   }
 
-  let sigmaGrid = null; // {url, promise}
-  function loadSigma() {
-    const url = context.assetUrl('uncertainty_um.npy');
-    if (!url) return Promise.resolve(null);
-    if (sigmaGrid?.url !== url) {
-      sigmaGrid = {
-        url,
-        promise: fetchBytes(url).then((buf) => {
-          const { shape, data } = parseNpy(buf);
-          let pixelSizeUm = context.getPixelSizeUm();
-          if (!pixelSizeUm) {
-            const g = viewer.model.mesh.geometry;
-            pixelSizeUm = pixelSizeFromMesh(g.attributes.position.array, g.attributes.uv.array, shape[1]);
-          }
-          return { sigmaUm: data, rows: shape[0], cols: shape[1], pixelSizeUm };
-        }),
-      };
-    }
-    return sigmaGrid.promise;
+  /**
+   * A loader of one full-resolution grid of the model (an .npy asset), cached by URL: the
+   * values under `key`, its shape and the pixel size (the model's, else from the mesh).
+   */
+  function npyGridLoader(getUrl, key) {
+    let cached = null; // {url, promise}
+    const load = () => {
+      const url = getUrl();
+      if (!url) return Promise.resolve(null);
+      if (cached?.url !== url) {
+        cached = {
+          url,
+          promise: fetchBytes(url).then((buf) => {
+            const { shape, data } = parseNpy(buf);
+            let pixelSizeUm = context.getPixelSizeUm();
+            if (!pixelSizeUm) {
+              const g = viewer.model.mesh.geometry;
+              pixelSizeUm = pixelSizeFromMesh(g.attributes.position.array, g.attributes.uv.array, shape[1]);
+            }
+            return { [key]: data, rows: shape[0], cols: shape[1], pixelSizeUm };
+          }),
+        };
+      }
+      return cached.promise;
+    };
+    load.reset = () => {
+      cached = null;
+    };
+    return load;
   }
+  const loadSigma = npyGridLoader(() => context.assetUrl('uncertainty_um.npy'), 'sigmaUm');
   // A whole tablet: each face's own σ_h grid (faces/<label>/uncertainty_um.npy) and pixel
   // size (the registration's report, else the face's trust.json).
   const faceGrids = new Map(); // url → Promise<grid>
@@ -421,26 +432,7 @@ export function bindScholarTools(viewer, context) {
     section = null;
   }
   /** A face model's full-resolution heights (height.npy), cached by URL. */
-  let modelHeights = null; // {url, promise}
-  function loadModelHeights() {
-    const url = context.getHeightUrl?.();
-    if (!url) return Promise.resolve(null);
-    if (modelHeights?.url !== url) {
-      modelHeights = {
-        url,
-        promise: fetchBytes(url).then((buf) => {
-          const { shape, data } = parseNpy(buf);
-          let pixelSizeUm = context.getPixelSizeUm();
-          if (!pixelSizeUm) {
-            const g = viewer.model.mesh.geometry;
-            pixelSizeUm = pixelSizeFromMesh(g.attributes.position.array, g.attributes.uv.array, shape[1]);
-          }
-          return { heightUm: data, rows: shape[0], cols: shape[1], pixelSizeUm };
-        }),
-      };
-    }
-    return modelHeights.promise;
-  }
+  const loadModelHeights = npyGridLoader(() => context.getHeightUrl?.(), 'heightUm');
 
   /**
    * The plane's cut of the finest surface at hand (section.js): a face model's height.npy, a
@@ -588,8 +580,8 @@ export function bindScholarTools(viewer, context) {
       clearSection();
       $('section-panel').hidden = true;
       $('light-strip').hidden = true;
-      sigmaGrid = null;
-      modelHeights = null;
+      loadSigma.reset();
+      loadModelHeights.reset();
       faceGrids.clear();
     },
     /** For tests: the lens modes offered. */

@@ -391,3 +391,28 @@ def stop_worker(process: subprocess.Popen) -> None:
 
 def launch_chromium(playwright):
     return playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+
+
+_SETTLE_JS = """async () => {
+  const v = window.hammurabi.viewer;
+  await v.whenIdle?.();
+  const frame = () => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)));
+  const deadline = performance.now() + 60000;
+  let calm = 0;
+  while (calm < 2) {
+    v.invalidate();
+    await frame();
+    const s = v.streaming();
+    calm = !s || s.idle ? calm + 1 : 0;
+    if (performance.now() > deadline) throw new Error('tiles still loading after 60 s');
+    if (!calm) await new Promise(r => setTimeout(r, 50));
+  }
+  return v.streaming();
+}"""
+
+
+def settle_tiles(page) -> dict | None:
+    """Wait for idle maps and, for a streamed model, until after a drawn frame (which runs
+    the renderer's update) no tile is queued, downloading or parsing, twice in a row; the
+    viewer's streaming figures then (None for a single-mesh model)."""
+    return page.evaluate(_SETTLE_JS)

@@ -25,6 +25,7 @@ TABLET = "P999002"
 SIZE = (160, 128)  # 214 µm pixels: the simulator's six faces in a few seconds
 SHOT = (480, 360)
 BACKGROUND = np.array([0x1D, 0x1F, 0x24]) / 255
+server = sys.modules["hammurabi_browser_server"]  # loaded by conftest.py
 
 
 def _whole_tablet(out: Path) -> tuple[Path, Path]:
@@ -93,25 +94,7 @@ def _show(page, lib, which: str) -> None:
 
 
 def _wait_streamed(page) -> None:
-    """Idle maps, and for a streamed model no tile queued, downloading or parsing after a
-    drawn frame, twice in a row."""
-    page.evaluate(
-        """async () => {
-        const v = window.hammurabi.viewer;
-        await v.whenIdle();
-        const frame = () => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)));
-        const deadline = performance.now() + 60000;
-        let calm = 0;
-        while (calm < 2) {
-          v.invalidate();
-          await frame();
-          const s = v.streaming();
-          calm = !s || s.idle ? calm + 1 : 0;
-          if (performance.now() > deadline) throw new Error('tiles still loading after 60 s');
-          if (!calm) await new Promise(r => setTimeout(r, 50));
-        }
-      }"""
-    )
+    server.settle_tiles(page)
 
 
 def _top_edge_view(page, tools, mode: str) -> np.ndarray:

@@ -77,24 +77,8 @@ def streaming(page) -> dict:
 
 
 def wait_streamed(page) -> dict:
-    """Wait until, after a drawn frame (which runs the renderer's update), no tile is queued,
-    downloading or parsing, twice in a row."""
-    page.evaluate(
-        """async () => {
-        const v = window.hammurabi.viewer;
-        const frame = () => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)));
-        const deadline = performance.now() + 60000;
-        let calm = 0;
-        while (calm < 2) {
-          v.invalidate();
-          await frame();
-          calm = v.streaming().idle ? calm + 1 : 0;
-          if (performance.now() > deadline) throw new Error('tiles still loading after 60 s');
-          if (!calm) await new Promise(r => setTimeout(r, 50));
-        }
-      }"""
-    )
-    return streaming(page)
+    """No tile queued, downloading or parsing after a drawn frame, twice in a row."""
+    return server.settle_tiles(page)
 
 
 def tile_bytes_fetched(page) -> int:

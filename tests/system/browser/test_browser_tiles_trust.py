@@ -107,23 +107,7 @@ def look_at(page, x_mm: float, y_mm: float, zoom: float) -> None:
 
 
 def settle_tiles(page) -> dict:
-    page.evaluate(
-        """async () => {
-        const v = window.hammurabi.viewer;
-        await v.whenIdle?.();
-        const frame = () => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)));
-        const deadline = performance.now() + 60000;
-        let calm = 0;
-        while (calm < 2) {
-          v.invalidate();
-          await frame();
-          calm = v.streaming().idle ? calm + 1 : 0;
-          if (performance.now() > deadline) throw new Error('tiles still loading after 60 s');
-          if (!calm) await new Promise(r => setTimeout(r, 50));
-        }
-      }"""
-    )
-    return page.evaluate("() => window.hammurabi.viewer.streaming()")
+    return server.settle_tiles(page)
 
 
 def samples_on_screen(page, tools, t, rows, cols):
