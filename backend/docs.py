@@ -9,13 +9,14 @@ describes the error bodies we really send (:func:`describe_errors`).
 
 from __future__ import annotations
 
+from functools import cache
 from html import escape
 from pathlib import Path
 
 import fastapi_offline
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
-from fastapi.responses import HTMLResponse
+from fastapi.responses import HTMLResponse, Response
 from fastapi.staticfiles import StaticFiles
 
 from backend.schemas import ErrorOut, ValidationErrorOut
@@ -23,6 +24,11 @@ from backend.schemas import ErrorOut, ValidationErrorOut
 DOCS_PATH = "/docs"
 VENDOR_DIR = Path(fastapi_offline.__file__).parent / "static"
 OWN_DIR = Path(__file__).parent / "docs_static"
+# ReDoc's sidebar credit shows Redocly's logo from their CDN, which the docs CSP refuses (a
+# console error on every visit) and which offline machines cannot reach: our copy of the
+# script names a small local image instead.
+REDOC_CDN_LOGO = "https://cdn.redoc.ly/redoc/logo-mini.svg"
+REDOC_LOCAL_LOGO = f"{DOCS_PATH}/static/own/redoc-logo.svg"
 
 
 def _page(title: str, head: str, body: str) -> HTMLResponse:
@@ -32,6 +38,13 @@ def _page(title: str, head: str, body: str) -> HTMLResponse:
         f"<link rel='icon' type='image/png' href='{DOCS_PATH}/static/vendor/favicon.png'>"
         f"{head}</head>{body}</html>"
     )
+
+
+@cache
+def redoc_script() -> bytes:
+    """The vendored ReDoc bundle with its one CDN image (the credit's logo) made local."""
+    script = (VENDOR_DIR / "redoc.standalone.js").read_bytes()
+    return script.replace(REDOC_CDN_LOGO.encode(), REDOC_LOCAL_LOGO.encode())
 
 
 def describe_errors(schema: dict) -> dict:
@@ -96,11 +109,19 @@ def install_docs(
             f"<script src='{static}/own/swagger-init.js'></script></body>",
         )
 
+    @app.get(f"{static}/redoc.js", include_in_schema=False)
+    def redoc_js() -> Response:
+        return Response(
+            redoc_script(),
+            media_type="text/javascript",
+            headers={"Cache-Control": "public, max-age=3600"},
+        )
+
     @app.get(f"{DOCS_PATH}/redoc", include_in_schema=False)
     def redoc() -> HTMLResponse:
         return _page(
             f"{title}: API reference",
             "",
             f"<body><redoc spec-url='{escape(openapi_url)}'></redoc>"
-            f"<script src='{static}/vendor/redoc.standalone.js'></script></body>",
+            f"<script src='{static}/redoc.js'></script></body>",
         )

@@ -20,6 +20,7 @@ from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.staticfiles import StaticFiles
 
+from backend import auth_first
 from backend.api import annotations, auth, institutions, tablets, tokens, users
 from backend.api.deps import SessionGate
 from backend.body_limit import BodyLimit, upload_chunks_path
@@ -89,6 +90,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.facet_snapshot = FacetSnapshot()
     invalidate_on_tablet_writes(app.state.sessionmaker, app.state.facet_snapshot)
     install_error_handlers(app)
+    auth_first.install(app)  # anonymous writes: 401 before any 422 about the body
     # Reads are open to any origin (catalogue data, models for other viewers); writes need a
     # token or a same-site cookie, so no credentials are allowed cross-origin.
     app.add_middleware(

@@ -58,6 +58,11 @@ class UTCDateTime(TypeDecorator):
         return value
 
 
+# SQLite hands a deleted row's id (the largest) to the next row unless the table is
+# AUTOINCREMENT; ids name stable URLs (/tablets/7526), so they are never reused (0009).
+NEVER_REUSE_IDS = {"sqlite_autoincrement": True}
+
+
 class Base(DeclarativeBase):
     type_annotation_map = {dict[str, Any]: JSON, list[Any]: JSON, datetime: UTCDateTime()}
 
@@ -102,6 +107,7 @@ class JobState(enum.StrEnum):
 
 class Institution(Base):
     __tablename__ = "institutions"
+    __table_args__ = NEVER_REUSE_IDS
 
     id: Mapped[int] = mapped_column(primary_key=True)
     name: Mapped[str] = mapped_column(String(200), unique=True)
@@ -113,6 +119,7 @@ class Institution(Base):
 
 class User(Base):
     __tablename__ = "users"
+    __table_args__ = NEVER_REUSE_IDS
 
     id: Mapped[int] = mapped_column(primary_key=True)
     email: Mapped[str] = mapped_column(String(320), unique=True)
@@ -132,6 +139,7 @@ class User(Base):
 
 class ApiToken(Base):
     __tablename__ = "api_tokens"
+    __table_args__ = NEVER_REUSE_IDS
 
     id: Mapped[int] = mapped_column(primary_key=True)
     user_id: Mapped[int] = mapped_column(ForeignKey("users.id", ondelete="CASCADE"), index=True)
@@ -199,6 +207,7 @@ class Tablet(Base):
             sqlite_where=text("institution_id IS NULL"),
             postgresql_where=text("institution_id IS NULL"),
         ),
+        NEVER_REUSE_IDS,
     )
 
 
@@ -227,6 +236,7 @@ class Upload(Base):
 
 class Scan(Base):
     __tablename__ = "scans"
+    __table_args__ = NEVER_REUSE_IDS
 
     id: Mapped[int] = mapped_column(primary_key=True)
     tablet_id: Mapped[int] = mapped_column(ForeignKey("tablets.id", ondelete="CASCADE"), index=True)
@@ -242,6 +252,7 @@ class Scan(Base):
 
 class Job(Base):
     __tablename__ = "jobs"
+    __table_args__ = NEVER_REUSE_IDS
 
     id: Mapped[int] = mapped_column(primary_key=True)
     scan_id: Mapped[int | None] = mapped_column(
@@ -293,7 +304,10 @@ class Model(Base):
     # Loaded on use: the licence that applies falls back to the tablet's (backend.licences).
     tablet: Mapped[Tablet] = relationship(lazy="select")
 
-    __table_args__ = (UniqueConstraint("scan_id", "version", name="uq_models_scan_version"),)
+    __table_args__ = (
+        UniqueConstraint("scan_id", "version", name="uq_models_scan_version"),
+        NEVER_REUSE_IDS,
+    )
 
 
 class Annotation(Base):
@@ -305,6 +319,7 @@ class Annotation(Base):
     """
 
     __tablename__ = "annotations"
+    __table_args__ = NEVER_REUSE_IDS
 
     id: Mapped[int] = mapped_column(primary_key=True)
     model_id: Mapped[int] = mapped_column(ForeignKey("models.id", ondelete="CASCADE"), index=True)

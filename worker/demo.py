@@ -200,10 +200,11 @@ class LocalLibrary:
             log.close()
         self._log_files = []
 
-    def client(self) -> httpx.Client:
+    def client(self, token: str | None = None) -> httpx.Client:
+        """A client on ``/api/v1`` with ``token`` (default: the admin token)."""
         return httpx.Client(
             base_url=f"{self.url}/api/v1",
-            headers={"Authorization": f"Bearer {self.token}"},
+            headers={"Authorization": f"Bearer {token or self.token}"},
             timeout=60,
         )
 
@@ -379,6 +380,28 @@ def _job_text(row: dict) -> str:
 
 
 STAFF_EMAIL = "staff@demo.example"
+DEMO_INSTITUTION = "Demo"
+# The demo institution's default licence and credit: without them the manifests have no
+# ``rights`` and the tablet page says "Licence: none stated" (docs/api.md, "Licences").
+DEMO_LICENCE = "https://creativecommons.org/licenses/by/4.0/"
+DEMO_ATTRIBUTION = "Digital Hammurabi demo (simulated scans)"
+
+
+def set_institution_licence(
+    http: httpx.Client, *, name: str, licence: str, attribution: str
+) -> dict:
+    """Set the default licence and attribution of the institution ``name`` through the API,
+    as its staff would (``http``: a client on ``/api/v1`` with a staff token); returns the
+    institution as the API answers it."""
+    institutions = http.get("/institutions").raise_for_status().json()
+    matches = [i for i in institutions if i["name"] == name]
+    if not matches:
+        raise RuntimeError(f"no institution {name!r} in the library")
+    response = http.patch(
+        f"/institutions/{matches[0]['id']}",
+        json={"licence": licence, "attribution": attribution},
+    )
+    return response.raise_for_status().json()
 
 
 def run_demo(args: argparse.Namespace) -> int:
@@ -429,7 +452,9 @@ def run_demo(args: argparse.Namespace) -> int:
             )
         else:
             progress.say(f"importing the catalogue {catalogue} (SQLite in {data_dir})")
-        library.cli("import-catalogue", str(catalogue), "--public", "--institution", "Demo")
+        library.cli(
+            "import-catalogue", str(catalogue), "--public", "--institution", DEMO_INSTITUTION
+        )
         library.create_admin_token()
         staff_password = secrets.token_urlsafe(9)
         library.cli(
@@ -438,13 +463,24 @@ def run_demo(args: argparse.Namespace) -> int:
             "--role",
             "staff",
             "--institution",
-            "Demo",
+            DEMO_INSTITUTION,
             "--password-stdin",
             stdin=staff_password + "\n",
         )
 
         progress.say("starting the library service (embedded broker)")
         library.start_server()
+        staff_token = library.cli(
+            "create-token", STAFF_EMAIL, "--name", "demo licence"
+        ).stdout.strip()
+        with library.client(token=staff_token) as http:
+            set_institution_licence(
+                http, name=DEMO_INSTITUTION, licence=DEMO_LICENCE, attribution=DEMO_ATTRIBUTION
+            )
+        print(
+            f"      licence of {DEMO_INSTITUTION}'s records: {DEMO_LICENCE}, "
+            f'"{DEMO_ATTRIBUTION}" (set by its staff through the API)'
+        )
 
         with library.client() as http:
             items = http.get("/tablets", params={"page_size": 1, "sort": "designation"})

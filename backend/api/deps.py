@@ -17,9 +17,9 @@ right error.
   changed, account disabled). Authentication ends its own short transaction (the token's
   ``last_used_at`` write included), so that write lock is never held while the route waits
   for its thread.
-- Tablet path parameter ``{tablet_id}``: our integer id or the P-number (``P001229``); a
-  record the user may not read is a 404 (its existence is not revealed); a readable record
-  the user may not edit is a 403.
+- Tablet path parameter ``{tablet_id}``: our integer id or the P-number (``P001229``; the
+  letter in either case, as scholars type it); a record the user may not read is a 404 (its
+  existence is not revealed); a readable record the user may not edit is a 403.
 
 For resources reached through a tablet (scans, uploads, jobs, models) use
 :func:`require_readable_tablet` / :func:`require_editable_tablet` with the tablet id you
@@ -46,7 +46,9 @@ from backend.security import SessionSigner
 from backend.settings import Settings
 from backend.tables import Institution, Role, Tablet, User
 
-TABLET_REF_PATTERN = r"^([0-9]{1,18}|[PQX][0-9]{6})$"  # ASCII: \d takes any Unicode digit
+# ASCII digits (\d takes any Unicode digit); the P-number's letter in either case, as
+# scholars type it ("p451806"), read as the upper case it is stored in (load_tablet).
+TABLET_REF_PATTERN = r"^([0-9]{1,18}|[PQXpqx][0-9]{6})$"
 
 
 async def get_settings(request: Request) -> Settings:
@@ -222,7 +224,7 @@ def require_institution(session: Session, institution_id: int | None) -> None:
 
 
 def load_tablet(session: Session, tablet_ref: str | int, user: User | None) -> Tablet | None:
-    ref = str(tablet_ref)
+    ref = str(tablet_ref).upper()
     if ref.isdigit():
         tablet_id = int(ref)
         # Past MAX_ID no row can exist (and PostgreSQL's INTEGER would overflow).
@@ -254,7 +256,7 @@ def require_editable_tablet(
 
 
 TabletRef = Annotated[
-    str, Path(pattern=TABLET_REF_PATTERN, description="our id, or the P-number (P001229)")
+    str, Path(pattern=TABLET_REF_PATTERN, description="our id, or the P-number (P001229; any case)")
 ]
 
 

@@ -25,6 +25,7 @@ from backend.api.deps import (
     StaffUser,
     require_institution,
 )
+from backend.csv_cells import safe_row
 from backend.errors import ApiError, conflict, forbidden
 from backend.schemas import FacetValue, SearchPage, TabletCreate, TabletOut, TabletUpdate
 from backend.search import SORT_CHOICES, SearchQuery, page_key, search_tablets
@@ -61,11 +62,13 @@ def _wanted_format(request: Request, fmt: str | None) -> str:
 
 
 def _csv_lines(rows: list[dict]) -> Iterator[str]:
+    # Cells are made spreadsheet-safe here only: JSON lines are read by programs, not
+    # spreadsheets, and keep the values exactly as stored.
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=CSV_COLUMNS, extrasaction="ignore")
     writer.writeheader()
     for i, row in enumerate(rows, 1):
-        writer.writerow(row)
+        writer.writerow(safe_row(row))
         if i % 500 == 0:
             yield buffer.getvalue()
             buffer.seek(0)

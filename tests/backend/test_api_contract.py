@@ -80,3 +80,17 @@ def test_docs_pages_load_only_our_own_files(client):
             fetched = client.get(asset)
             assert fetched.status_code == 200 and len(fetched.content) > 100, asset
     assert "cdn" not in client.get("/docs").headers["content-security-policy"]
+
+
+def test_redoc_loads_its_credit_logo_from_us_not_from_its_cdn(client):
+    # The vendored bundle asks cdn.redoc.ly for its sidebar logo: the CSP refused it, a
+    # console error on every visit. Our copy names a local image.
+    page = client.get("/docs/redoc").text
+    script_url = re.search(r"<script src='([^']+)'", page).group(1)
+    script = client.get(script_url)
+    assert script.status_code == 200
+    assert script.headers["content-type"].startswith("text/javascript")
+    assert b"cdn.redoc.ly" not in script.content
+    assert b"/docs/static/own/redoc-logo.svg" in script.content
+    logo = client.get("/docs/static/own/redoc-logo.svg")
+    assert logo.status_code == 200 and logo.headers["content-type"].startswith("image/svg+xml")

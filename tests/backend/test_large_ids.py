@@ -52,7 +52,8 @@ SCHEMA = _openapi()
 def _is_id(name: str, schema: dict) -> bool:
     # Upload ids are UUIDs (strings without digits-only refs); tablet refs are id or P-number.
     return name.endswith("_id") and (
-        schema.get("type") == "integer" or "\\d{1," in schema.get("pattern", "")
+        schema.get("type") == "integer"
+        or any(digits in schema.get("pattern", "") for digits in ("\\d{1,", "[0-9]{1,"))
     )
 
 

@@ -148,3 +148,18 @@ def test_only_ascii_digits_make_a_p_number_or_an_id(client, world, digits):
     assert get(client, world, "admin", f"P{digits}").status_code == 422
     assert get(client, world, "admin", digits[0]).status_code == 422
     assert get(client, world, "admin", str(world.public_a)).status_code == 200
+
+
+@pytest.mark.parametrize("ref", ["p000001", "P000001", "p000002"])
+def test_a_p_number_in_the_path_is_case_insensitive(client, world, ref):
+    # Scholars type "p451806": it names the same record as "P451806" (stored upper case).
+    expected = {"000001": world.public_a, "000002": world.private_a}[ref[1:]]
+    response = get(client, world, "staff_own", ref)
+    assert response.status_code == 200, response.text
+    assert response.json()["id"] == expected
+    assert response.json()["p_number"] == ref.upper()
+    manifest = client.get(f"{API}/tablets/{ref}/scans", headers=world.headers("staff_own"))
+    assert manifest.status_code == 200, manifest.text
+    # ...and stays hidden from whoever may not read it, in either case.
+    if ref[1:] == "000002":
+        assert get(client, world, "anonymous", ref).status_code == 404

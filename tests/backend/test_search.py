@@ -299,3 +299,32 @@ def test_page_cache_is_bounded(world, catalogue, monkeypatch):
         # 4 bytes each: two fit in 10 bytes, the most recent ones
         assert len(snapshot._pages) == 2 and snapshot._pages_bytes == 8
         assert [k[-1][4] for k in snapshot._pages] == [4, 5]
+
+
+def test_csv_export_escapes_formulas_but_not_numbers_or_jsonl(client, world):
+    """OWASP's CSV-injection rule: text cells that a spreadsheet would run get a leading
+    ``'``; numeric columns (a negative size) stay numbers; JSON lines keep the stored text."""
+    evil = '=HYPERLINK("http://evil.example","click")'
+    text_cells = {
+        "designation": evil,
+        "museum_no": "+1+1",
+        "collection": "-2+3",
+        "owner": "@SUM(A1)",
+        "notes": "\t=1",
+        "primary_publication": "\r=1",
+        "period": "Old Babylonian",  # an ordinary value stays as it is
+    }
+    tablet_id = world.new_tablet(is_public=True, height_mm=-1.5, width_mm=42.0, **text_cells)
+    response = client.get("/api/v1/tablets", params={"format": "csv"})
+    assert response.status_code == 200
+    rows = {int(r["id"]): r for r in csv.DictReader(io.StringIO(response.text, newline=""))}
+    row = rows[tablet_id]
+    for name, value in text_cells.items():
+        expected = value if name == "period" else "'" + value
+        assert row[name] == expected, name
+    assert row["height_mm"] == "-1.5" and row["width_mm"] == "42.0"
+
+    response = client.get("/api/v1/tablets", params={"format": "jsonl"})
+    lines = {line["id"]: line for line in map(json.loads, response.text.splitlines())}
+    assert lines[tablet_id]["designation"] == evil
+    assert lines[tablet_id]["height_mm"] == -1.5

@@ -45,6 +45,6 @@ def test_swagger_ui_and_redoc_work_offline(browser, library):
     finally:
         context.close()
     assert not blocked, blocked
-    # ReDoc's sidebar credit links its logo from cdn.redoc.ly; the CSP stops that image,
-    # which is the point (nothing from elsewhere), so that one refusal is expected.
-    assert [e for e in errors if "cdn.redoc.ly/redoc/logo-mini.svg" not in e] == []
+    # ReDoc's sidebar credit asked cdn.redoc.ly for its logo and the CSP refused it; our
+    # copy of the script (backend/docs.py) names a local image, so no refusal at all.
+    assert errors == []
