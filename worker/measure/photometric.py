@@ -21,11 +21,14 @@ __all__ = [
 ]
 
 # Width of the neighbourhood whose majority light set the fringe path's normals are fitted
-# from, 0: off. On native-random-0, 3, 5, 7, 9, 15 px gave height MAE 5.68, 5.57, 5.66, 5.95,
-# 5.98 µm (5.81 off), and 5 px lowered the MAE on 8 of 10 bench scans, but raised it on
-# native-random-6 (2.65 → 2.85 µm, wedge depth 10.98 → 12.98): off until that is understood
-# (docs/benchmarks.md, issue 15, session 8).
-_CONSENSUS_WINDOW_PX = 0
+# from (0: off), and the spread of the window's normals (± degrees about their mean) beyond
+# which each pixel keeps its own set. bench/robustness.py, 25 scans: without the stand-down,
+# 5 px lowered the height MAE on 14 scans but raised native-random-6's (2.65 → 2.83 µm, wedge
+# depth 11.00 → 12.40), whose loss sits where the normals turn; with it (10°) the MAE fell
+# on 8 scans and rose on none by more than 1 % (12°: random-6 as without; 8°: random-0's
+# gain gone) (docs/benchmarks.md, issue 15, session 8).
+_CONSENSUS_WINDOW_PX = 5
+_CONSENSUS_MAX_TURN_DEG = 10.0
 
 
 def _source_footprint(ref_stack, frames, height_um, pixel_size_um, workers=1):
@@ -132,14 +135,15 @@ def measure_photometric(bundle, photo, meas, rho_ref, *, stacks=None, workers: i
     # Without fringe heights nothing corrects the normals afterwards: least squares where
     # it explains every lit sample, the robust fit elsewhere (never worse than least squares
     # on a matte object). With fringes the fusion's bias correction and weights were tuned
-    # with the robust fit everywhere, and keep it.
-    # With fringes, optionally each pixel's normal is fitted again from its neighbourhood's
-    # majority light set (photometric_fit.consensus_refit, see _CONSENSUS_WINDOW_PX).
+    # with the robust fit everywhere, and keep it; there each pixel's normal is then fitted
+    # again from its neighbourhood's majority light set where the neighbourhood's normals
+    # agree (photometric_fit.consensus_refit, see _CONSENSUS_WINDOW_PX).
     res = photometric_stereo(
         shading,
         lights,
         least_squares_when_consistent=alone,
         consensus_window_px=0 if alone else _CONSENSUS_WINDOW_PX,
+        consensus_max_turn_deg=_CONSENSUS_MAX_TURN_DEG,
         workers=workers,
     )
     meas.normals = res.normals

@@ -27,6 +27,7 @@ from worker.recon.photometric_fit import (
     _count,
     _select,
     asymmetric_refine,
+    coherent_normals,
     cone_resolve,
     consensus_light_sets,
     consensus_refit,
@@ -134,6 +135,7 @@ def photometric_stereo(
     highlight_cone_deg: float | None = 20.0,
     least_squares_when_consistent: bool = False,
     consensus_window_px: int = 0,
+    consensus_max_turn_deg: float = 10.0,
     workers: int = 1,
 ) -> PhotometricResult:
     """Robust Lambertian photometric stereo, vectorised over pixels.
@@ -179,6 +181,10 @@ def photometric_stereo(
         0: off. Otherwise, after every pixel's own fit, fit each pixel again from the light
         set that the majority of its ``consensus_window_px``-wide neighbourhood keeps
         (:func:`photometric_fit.consensus_refit`), where that set explains its samples.
+    consensus_max_turn_deg : float
+        The neighbourhood's set stands down (each pixel keeps its own) where the window's
+        fitted normals spread by more than ± this angle about their mean
+        (:func:`photometric_fit.coherent_normals`).
     workers : int
         Threads sharing the chunks of pixels (the result does not depend on it).
 
@@ -305,6 +311,13 @@ def photometric_stereo(
         consensus = consensus_light_sets(
             inl_all.reshape(k, h, w), ok_all.reshape(h, w), consensus_window_px
         ).reshape(k, h * w)
+        coherent = coherent_normals(
+            b_all.reshape(h, w, 3),
+            ok_all.reshape(h, w),
+            consensus_window_px,
+            consensus_max_turn_deg,
+        ).reshape(h * w)
+        np.copyto(consensus, inl_all, where=~coherent[None, :])
         run_blocks(resolve, range(0, pix.size, chunk), workers=workers)
 
     return PhotometricResult(

@@ -15,6 +15,7 @@ from scipy import ndimage
 __all__ = [
     "Model",
     "cone_resolve",
+    "coherent_normals",
     "consensus_light_sets",
     "consensus_refit",
     "consistent_least_squares",
@@ -715,6 +716,37 @@ def consensus_light_sets(inl_img: np.ndarray, ok_img: np.ndarray, window_px: int
         votes = ndimage.uniform_filter(inl_img[k] * ok32, window_px, mode="constant")
         np.greater(votes, half, out=out[k])
     return out
+
+
+def coherent_normals(
+    b_img: np.ndarray, ok_img: np.ndarray, window_px: int, max_turn_deg: float
+) -> np.ndarray:
+    """Pixels whose ``window_px`` × ``window_px`` neighbourhood of fitted normals is coherent:
+    (H, W) bool from the scaled normals ``b_img`` (H, W, 3) and the solved pixels ``ok_img``.
+
+    Coherent means the mean resultant length R̄ = |mean of the unit normals| of the window's
+    solved pixels is at least cos ``max_turn_deg`` (Mardia & Jupp, *Directional Statistics*,
+    2000, §9.2: R̄ = cos θ for directions spread at ±θ about their mean). One light set
+    serves a neighbourhood only where its normals see the lights alike; where the surface
+    turns within the window (a wedge's wall meeting its floor, a tight curve) a light's lobe
+    tail or interreflection differs between its pixels, and a set that the majority keeps
+    carries biases the minority's own fit had rejected.
+    """
+    norm = np.linalg.norm(b_img, axis=-1)
+    ok = ok_img & (norm > 0)
+    unit = np.where(ok[..., None], b_img / np.where(ok, norm, 1.0)[..., None], 0.0)
+    ok32 = ok.astype(np.float32)
+    count = ndimage.uniform_filter(ok32, window_px, mode="constant")
+    mean = np.stack(
+        [
+            ndimage.uniform_filter(unit[..., c].astype(np.float32), window_px, mode="constant")
+            for c in range(3)
+        ],
+        axis=-1,
+    )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r_bar = np.linalg.norm(mean, axis=-1) / count
+    return ok & (r_bar >= np.cos(np.radians(max_turn_deg)))
 
 
 def consensus_refit(model, inl, b, ok, consensus):

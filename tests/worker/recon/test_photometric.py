@@ -344,3 +344,50 @@ def test_consensus_window_still_rejects_highlights_and_cast_shadows():
     # by degrees (0.8 above a shading of ~0.3; the shadow's 0 on a lit sample).
     err = np.degrees(np.arccos(np.clip(np.sum(shared.normals * n, -1), -1, 1)))
     assert np.max(err) < 5.0
+
+
+def test_coherent_normals_stand_down_where_the_surface_turns():
+    from worker.recon.photometric_fit import coherent_normals
+
+    # A V-groove: walls tilted ±20° meet along column 20; plane beyond.
+    h, w = 30, 60
+    slope = np.zeros((h, w))
+    slope[:, 10:20] = -np.tan(np.radians(20.0))
+    slope[:, 20:30] = np.tan(np.radians(20.0))
+    b = np.stack([-slope, np.zeros((h, w)), -np.ones((h, w))], -1) * 0.7  # ρ = 0.7 scale
+    ok = np.ones((h, w), dtype=bool)
+    ok[:, 55:] = False  # unsolved pixels neither vote nor pass
+    c = coherent_normals(b, ok, 5, 12.0)
+    assert not c[:, 55:].any()
+    assert c[:, 40:50].all()  # flat: R̄ = 1
+    assert c[:, 13:17].all() and c[:, 23:27].all()  # inside one wall
+    # Windows with both walls (at least one column of each in five): R̄ ≤ 0.962 < cos 12°.
+    assert not c[:, 18:22].any()
+    # Within ±20° of their mean every window passes at 25°; the wall's edge on the plane
+    # (0° against 20°) passes at 12° too.
+    assert coherent_normals(b, ok, 5, 25.0)[:, :55].all()
+    assert c[:, 8:12].all()
+
+
+def test_consensus_stands_down_at_a_crease():
+    # The biased light of _biased_light_sphere, on a V-groove whose walls are tilted ±20°:
+    # where the window straddles the crease, each pixel keeps its own light set.
+    rng = np.random.default_rng(7)
+    yy, xx = np.mgrid[0:48, 0:64]
+    t = np.tan(np.radians(20.0))
+    sx = np.where(xx < 32, -t, t)
+    n = np.stack([-sx, np.zeros_like(sx), -np.ones_like(sx)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    ls = light_directions(np.arange(8) * 45.0, 45.0)
+    s = 0.5 * np.clip(np.einsum("hwc,kc->khw", n, ls), 0, None)
+    s[0] *= 1.12
+    s = (s + rng.normal(0, 0.004, s.shape)).astype(np.float32)
+    own = photometric_stereo(s, ls)
+    strict = photometric_stereo(s, ls, consensus_window_px=5, consensus_max_turn_deg=12.0)
+    loose = photometric_stereo(s, ls, consensus_window_px=5, consensus_max_turn_deg=90.0)
+    crease = np.zeros(n.shape[:2], dtype=bool)
+    crease[:, 30:34] = True
+    same = np.all(strict.normals == own.normals, axis=-1)
+    assert same[crease].all()  # stood down: the pixel's own fit, bit for bit
+    assert not np.all(loose.normals[crease] == own.normals[crease])  # the set acts without it
+    assert not same[:, 5:25].all()  # away from the crease it still acts
