@@ -765,10 +765,19 @@ def consensus_refit(model, inl, b, ok, consensus):
     shadow's edge, a highlight of its own), or spans fewer than three lights.
     """
     use = consensus & model.valid
-    b_c, ok_c = _fit(model.s, use, model.lights32, model.ll6)
-    r, tol, front = model.residual(b_c)
-    bad = use & ((np.abs(r) > tol) | ~front)
-    take = ok_c & ok & ~np.any(bad, axis=0) & np.any(use != inl, axis=0)
-    b = np.where(take[:, None], b_c, b)
+    # Only the pixels whose neighbourhood set differs from their own are fitted again (on
+    # the paper scan about a third: the pass cost 0.6 CPU s over every pixel).
+    cols = np.flatnonzero(ok & np.any(use != inl, axis=0))
+    if cols.size == 0:
+        return inl, b, ok
+    sub, use_c = model.sub(cols), _cols(use, cols)
+    b_c, ok_c = _fit(sub.s, use_c, model.lights32, model.ll6)
+    r, tol, front = sub.residual(b_c)
+    bad = use_c & ((np.abs(r) > tol) | ~front)
+    taken = cols[ok_c & ~np.any(bad, axis=0)]
+    take = np.zeros(ok.shape, dtype=bool)
+    take[taken] = True
+    b = np.where(take[:, None], 0, b)
+    b[taken] = b_c[ok_c & ~np.any(bad, axis=0)]
     inl = _select(take[None, :], use, inl)
     return inl, b, ok
