@@ -104,5 +104,8 @@ export function pointsOnOneFace(points, faceOf, faces) {
       `the ends lie on two faces (${faces[idx[0]].name}, ${faces[idx.find((i) => i !== idx[0])].name}): each face has its own height grid, pick both on one`,
     );
   }
-  return { face: idx[0], points: points.map((p) => transformPoint(faces[idx[0]].toFace, p)) };
+  const face = faces[idx[0]];
+  // A streamed tablet's face has its frame once a tile of it has loaded (tiles.js faceFrame).
+  if (!face.toFace) throw new RangeError(`the face ${face.name} is not loaded yet`);
+  return { face: idx[0], points: points.map((p) => transformPoint(face.toFace, p)) };
 }

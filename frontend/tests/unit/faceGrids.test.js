@@ -44,3 +44,10 @@ describe('a whole tablet\'s faces as image grids', () => {
     expect(() => pointsOnOneFace([[1, 1, 0]], () => -1, faces)).toThrow(/not on any face/);
   });
 });
+
+describe('a streamed face not loaded yet', () => {
+  it('is refused by name rather than read in an unknown frame', () => {
+    const faces = [{ name: 'obverse', toFace: null }];
+    expect(() => pointsOnOneFace([[0, 0, 0], [1, 0, 0]], () => 0, faces)).toThrow(/obverse is not loaded yet/);
+  });
+});
