@@ -330,6 +330,8 @@ def test_quality_pm_profile_and_section_on_a_streamed_whole_tablet(
     requests: list[str] = []
     page.on("request", lambda req: requests.append(req.url))
     try:
+        login = {"email": server.STAFF_EMAIL, "password": server.STAFF_PASSWORD}
+        assert page.request.post(f"{library.url}/api/v1/auth/login", data=login).ok
         page.goto(f"{library.url}/tablet.html?id={library.tablets['P999003']}#m={t.id}")
         page.wait_for_function(
             "() => document.getElementById('viewer').dataset.loaded", timeout=60000
@@ -424,6 +426,25 @@ def test_quality_pm_profile_and_section_on_a_streamed_whole_tablet(
         if os.environ.get("HAMMURABI_SAVE_SCREENSHOTS"):
             out = Path(os.environ["HAMMURABI_SAVE_SCREENSHOTS"])
             page.locator(".stage").screenshot(path=str(out / "whole-tablet-streamed-section.png"))
+        page.locator("#section-close").click()
+
+        # A sign's region drawn on the reverse: in mm, and on the reverse's own image grid
+        # (the picks' points taken onto the face's grid, not the tiles' own uv).
+        page.evaluate("() => window.hammurabi.viewer.setView('reverse')")
+        settle_tiles(page)
+        square = [(150, 200), (150, 300), (250, 300), (250, 200)]  # (row, col) of the reverse
+        page.locator("#annotation-new").click()
+        for r, c in square:
+            page.mouse.click(*tools.screen_of(page, _tablet_point(t, "reverse", r, c)))
+        page.locator("#annotation-reference").fill("r 1 1")
+        page.locator("#annotation-save").click()
+        page.wait_for_selector('#annotation-list li[data-ref="r 1 1"]')
+        items = page.evaluate("() => window.hammurabi.annotations.state.items")
+        (drawn,) = [a for a in items if a["modelId"] == t.id]
+        assert drawn["imageFace"] == "reverse", drawn
+        want_px = [(c, r) for r, c in square]
+        assert np.allclose(drawn["polygonPx"], want_px, atol=0.5), drawn["polygonPx"]
+
         # Heights came from each face's height.f32, never a whole-grid .npy.
         assert any("faces/reverse/height.f32" in u for u in requests), requests[-20:]
         assert not any(u.endswith("height.npy") for u in requests)
