@@ -363,7 +363,7 @@ def test_quality_pm_profile_and_section_on_a_streamed_whole_tablet(
             if os.environ.get("HAMMURABI_SAVE_SCREENSHOTS"):
                 out = Path(os.environ["HAMMURABI_SAVE_SCREENSHOTS"])
                 page.locator(".stage").screenshot(
-                    path=str(out / f"whole-tablet-streamed-quality-{view}.png")
+                    path=str(out / f"viewer-tiles-tablet-quality-{view}.png")
                 )
 
         # ± of a distance on the reverse (in view): σ_h read on the reverse's own grid at each
@@ -425,7 +425,7 @@ def test_quality_pm_profile_and_section_on_a_streamed_whole_tablet(
         assert depth == pytest.approx(np.ptp(zs), abs=0.02), (depth, np.ptp(zs))
         if os.environ.get("HAMMURABI_SAVE_SCREENSHOTS"):
             out = Path(os.environ["HAMMURABI_SAVE_SCREENSHOTS"])
-            page.locator(".stage").screenshot(path=str(out / "whole-tablet-streamed-section.png"))
+            page.locator(".stage").screenshot(path=str(out / "viewer-tiles-tablet-section.png"))
         page.locator("#section-close").click()
 
         # A sign's region drawn on the reverse: in mm, and on the reverse's own image grid
