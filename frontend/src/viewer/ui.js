@@ -126,13 +126,16 @@ export function bindViewerUi(viewer, context) {
     );
   }
   async function showDistance(points) {
+    const measure = lastMeasure; // a newer measurement replaces this one's readout
     if (viewer.model?.tiles) points = await onFullSurface(points).catch(() => points);
+    if (lastMeasure !== measure) return;
     const d = distanceMm(points[0], points[1]);
     setReadout(`Distance: ${d.toFixed(2)} mm`);
     $('readout').dataset.distanceMm = String(d);
     // The ± from the model's height uncertainty (trust.js), when it has one.
     const pm = await context.uncertainty?.distance(points).catch(() => null);
-    if (pm != null && lastMeasure?.points === points) {
+    // (not `points`: a streamed model's were moved onto the full-resolution surface)
+    if (pm != null && lastMeasure === measure) {
       setReadout(`Distance: ${formatDistance(d, pm)}`);
       $('readout').dataset.uncertaintyMm = String(pm);
     }

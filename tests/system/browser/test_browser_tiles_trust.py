@@ -77,8 +77,14 @@ def tiled_trust(library, tmp_path_factory):
     (model_dir / "quality").mkdir(exist_ok=True)
     q = ((c // BLOCK_PX + r // BLOCK_PX) % 2).astype(np.float32)
     np.save(model_dir / "quality" / "checker.npy", np.where(on, q, np.nan).astype(np.float32))
+    np.save(model_dir / "uncertainty_um.npy", np.where(on, sigma_um(c, 0), np.nan))
     model_id = library.add_model("tiled-trust", "P999003", "reverse", model_dir)
-    return SimpleNamespace(id=model_id, on=on, s_mm=report["pixel_size_um"] / 1000)
+    return SimpleNamespace(
+        id=model_id,
+        on=on,
+        s_mm=report["pixel_size_um"] / 1000,
+        height=np.load(model_dir / "height.npy"),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -451,3 +457,48 @@ def test_quality_pm_profile_and_section_on_a_streamed_whole_tablet(
         assert not errors, errors
     finally:
         context.close()
+
+
+def test_pm_of_distances_and_profiles_on_a_streamed_face(trust_page, tiled_trust, tools):
+    """σ_h (uncertainty_um.npy) gives a streamed face's distances their ± and its profiles
+    their band, as on a face model, with the heights read from height.f32 by Range."""
+    page, errors = trust_page
+    t = tiled_trust
+    page.evaluate("() => window.hammurabi.viewer.setShading({ mode: 'clay' })")
+    look_at(page, W / 2 * t.s_mm, H / 2 * t.s_mm, 1)
+    settle_tiles(page)
+
+    def point(r, c):
+        return [c * t.s_mm, r * t.s_mm, float(-t.height[r, c]) / 1000]
+
+    ends = [(700, 500), (760, 1500)]
+    a, b = (point(*e) for e in ends)
+    pm = page.evaluate("p => window.hammurabi.scholar.uncertainty.distance(p)", [a, b])
+    dxy = np.hypot(b[0] - a[0], b[1] - a[1])
+    dz = abs(b[2] - a[2])
+    d = np.hypot(dxy, dz)
+    sig = [float(sigma_um(np.array(c), 0)) for _, c in ends]
+    want = ((dz / d) * sum(sig) + (dxy / d) * t.s_mm * 1000) / 1000
+    assert pm == pytest.approx(want, rel=1e-3), (pm, want)
+
+    # Through the page's tools: a distance with its ±, a profile with its band.
+    page.locator("#viewer").focus()
+    page.keyboard.press("m")
+    for e in ends:
+        page.mouse.click(*tools.screen_of(page, point(*e)))
+    page.wait_for_function(
+        "() => document.getElementById('readout').dataset.uncertaintyMm !== undefined"
+    )
+    assert "±" in page.locator("#readout").inner_text()
+    page.keyboard.press("Escape")
+    row, cols = 768, (400, 1600)
+    page.keyboard.press("h")
+    for c in cols:
+        page.mouse.click(*tools.screen_of(page, point(row, c)))
+    page.wait_for_function("() => !document.getElementById('profile-panel').hidden")
+    text = page.locator("#readout").inner_text()
+    median = float(re.search(r"heights ± ([\d.]+) µm", text).group(1))
+    assert median == pytest.approx(float(sigma_um(np.array(np.mean(cols)), 0)), abs=2), text
+    assert page.locator("#profile-chart path.band").count() == 1
+    page.keyboard.press("Escape")
+    assert not errors, errors
