@@ -310,3 +310,25 @@ def test_quality_and_sections_of_the_streamed_tablet_are_the_single_meshs(page, 
     assert m["source"] == s["source"] == "heights", cuts
     assert s["width"] == pytest.approx(m["width"], abs=0.05), cuts
     assert s["depth"] == pytest.approx(m["depth"], abs=0.05), cuts
+
+
+def test_best_light_of_the_streamed_tablet_is_the_single_meshs(page, lib, tools):
+    """The best light for a region of the reverse: from the normals of the tile clicked on the
+    streamed tablet, of the face clicked on model.glb, each turned into the tablet frame by
+    the face's rotation: the same light."""
+    got = {}
+    for which in ("mesh", "streamed"):
+        _show(page, lib, which)
+        page.evaluate("() => window.hammurabi.viewer.setView('reverse')")
+        _wait_streamed(page)
+        box = page.locator("#viewer").bounding_box()
+        page.locator("#viewer").focus()
+        page.keyboard.press("w")
+        page.mouse.click(box["x"] + box["width"] / 2 + 40, box["y"] + box["height"] / 2 - 30)
+        strip = page.locator("#light-strip")
+        strip.wait_for(state="visible")
+        got[which] = [float(strip.get_attribute(f"data-{k}")) for k in ("azimuth", "polar")]
+        page.keyboard.press("Escape")
+    (az_m, po_m), (az_s, po_s) = got["mesh"], got["streamed"]
+    assert abs((az_s - az_m + 180) % 360 - 180) <= 2, got
+    assert abs(po_s - po_m) <= 2, got

@@ -404,6 +404,15 @@ def test_quality_pm_profile_and_section_on_a_streamed_whole_tablet(
         assert page.locator("#profile-chart path.band").count() == 1
         page.keyboard.press("Escape")
 
+        # The best light from the reverse's tile under the click (its normals turned into the
+        # tablet frame by the face's rotation).
+        page.keyboard.press("w")
+        page.mouse.click(*tools.screen_of(page, _tablet_point(t, "reverse", 220, 320)))
+        strip = page.locator("#light-strip")
+        strip.wait_for(state="visible")
+        assert int(strip.get_attribute("data-normals")) > 50
+        page.keyboard.press("Escape")
+
         # A section across the obverse along one row: the plane holds the view's axis, so it
         # cuts that row of the obverse and of the reverse (12 mm behind) at full resolution.
         page.evaluate("() => window.hammurabi.viewer.setView('obverse')")
