@@ -510,4 +510,12 @@ def test_pm_of_distances_and_profiles_on_a_streamed_face(trust_page, tiled_trust
     assert median == pytest.approx(float(sigma_um(np.array(np.mean(cols)), 0)), abs=2), text
     assert page.locator("#profile-chart path.band").count() == 1
     page.keyboard.press("Escape")
+
+    # Unsharp masking of the normals acts on the tiles (each tile's own normal map).
+    before = tools.canvas_pixels(page)
+    page.evaluate("() => window.hammurabi.viewer.setEnhance({ normalUnsharp: 4 })")
+    settle_tiles(page)
+    after = tools.canvas_pixels(page)
+    page.evaluate("() => window.hammurabi.viewer.setEnhance({ normalUnsharp: 0 })")
+    assert np.abs(after - before).mean() > 0.005, np.abs(after - before).mean()
     assert not errors, errors
