@@ -482,9 +482,11 @@ export function bindViewerUi(viewer, context) {
     /** The measurement on screen ({tool, points, lengthMm}) or null. */
     measurement: () => lastMeasure,
     /** Show a measurement a permalink carried: marks, readout and (for a profile) the chart. */
-    restoreMeasure(measure) {
+    async restoreMeasure(measure) {
       if (!measure) return;
       viewer.setMarks(measure.points);
+      // A streamed tablet's faces have their frames once their tiles are in (tiles.js).
+      if (viewer.model?.tiles?.kind === 'tablet') await viewer.whenTilesSettled();
       return showMeasure(measure.tool, measure.points);
     },
     /** A lasting notice about the opened link (null: none), shown before any map notice. */

@@ -287,6 +287,23 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     onChange('enhance');
   }
 
+  /**
+   * Resolves once a streamed model's tiles for the current view are in: after a drawn frame
+   * (which runs the renderer's update) nothing is queued, downloading or parsing, twice in a
+   * row; at once for a single mesh. A streamed tablet's faces get their frames from their
+   * tiles (tiles.js faceFrame), which a measurement restored from a link needs.
+   * @param {number} [timeoutMs] give up (resolve) after this long
+   */
+  async function whenTilesSettled(timeoutMs = 30000) {
+    const deadline = performance.now() + timeoutMs;
+    const frame = () => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)));
+    for (let calm = 0; calm < 2 && model?.tiles && performance.now() < deadline; ) {
+      invalidate();
+      await frame();
+      calm = model?.tiles?.stats().idle ? calm + 1 : 0;
+    }
+  }
+
   /** Resolves when the maps requested so far have loaded (or failed). */
   async function whenIdle() {
     while (pendingLoads.size) await Promise.all([...pendingLoads]);
@@ -882,6 +899,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     /** Adaptive resolution while moving on (default) or off (every frame at full resolution). */
     setAdaptiveResolution: (on) => adaptive.setEnabled(on),
     whenIdle,
+    whenTilesSettled,
     invalidate,
     setEnhance,
     addOverlay,

@@ -402,7 +402,21 @@ def test_quality_pm_profile_and_section_on_a_streamed_whole_tablet(
         median = float(re.search(r"heights ± ([\d.]+) µm", text).group(1))
         assert median == pytest.approx(float(sigma_um(np.array(np.mean(cols)), 1)), abs=2), text
         assert page.locator("#profile-chart path.band").count() == 1
+        link = page.evaluate("() => window.hammurabi.ui.permalinkUrl()")
         page.keyboard.press("Escape")
+        # The link restores the profile once the reverse's tiles (its frame) are in.
+        other = context.new_page()
+        other.goto(link)
+        other.wait_for_function(
+            "() => !document.getElementById('profile-panel').hidden", timeout=60000
+        )
+        # (the link's 7 significant digits may move the sample count by one)
+        assert (
+            other.locator("#readout").inner_text().split(" samples")[0][:-4]
+            == text.split(" samples")[0][:-4]
+        )
+        assert other.locator("#profile-chart path.band").count() == 1
+        other.close()
 
         # The best light from the reverse's tile under the click (its normals turned into the
         # tablet frame by the face's rotation).
@@ -448,9 +462,12 @@ def test_quality_pm_profile_and_section_on_a_streamed_whole_tablet(
         page.evaluate("() => window.hammurabi.viewer.setView('reverse')")
         settle_tiles(page)
         square = [(150, 200), (150, 300), (250, 300), (250, 200)]  # (row, col) of the reverse
-        page.locator("#annotation-new").click()
-        for r, c in square:
+        page.locator("#annotation-new").click()  # the section tool stops: the clicks are ours
+        assert page.locator("#section").get_attribute("aria-pressed") == "false"
+        for k, (r, c) in enumerate(square):
             page.mouse.click(*tools.screen_of(page, _tablet_point(t, "reverse", r, c)))
+            status = page.locator("#annotation-status")
+            assert status.inner_text().startswith(f"{k + 1} point"), status.inner_text()
         page.locator("#annotation-reference").fill("r 1 1")
         page.locator("#annotation-save").click()
         page.wait_for_selector('#annotation-list li[data-ref="r 1 1"]')
