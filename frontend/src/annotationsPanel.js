@@ -10,6 +10,7 @@ import * as api from './api.js';
 import './annotations.css';
 import { el, showError } from './dom.js';
 import { annotationsOfSign, canAnnotate, canEdit, createRegionOverlay, normaliseReference, regionBody } from './viewer/annotations.js';
+import { faceUvOfPoint } from './viewer/faceGrids.js';
 
 const SEARCH_DELAY_MS = 250;
 const DRAG_PX = 4; // a press that moves more is an orbit, not a click on the surface
@@ -195,10 +196,21 @@ export function bindAnnotations(viewer, { container, canvas, stopTools }) {
     if (moved > DRAG_PX) return;
     const hit = viewer.pick(e.clientX, e.clientY);
     if (!hit) return;
-    draft.push({ point: hit.point, uv: hit.uv, part: hit.part ?? null });
+    draft.push({ point: hit.point, uv: faceUv(hit), part: hit.part ?? null });
     drawStatus();
     redraw();
   });
+
+  /** A hit's uv on its face's whole image grid: a streamed tablet's hit carries its tile's
+   * uv, so its point is taken onto the face's grid (faceGrids.js); model.glb's is that already. */
+  function faceUv(hit) {
+    const tiled = viewer.model?.tiles;
+    if (tiled?.kind !== 'tablet') return hit.uv;
+    const face = viewer.model.assets.faces.find((f) => f.name === hit.part);
+    const grid = tiled.faceGrid(hit.part);
+    if (!face?.toFace || !grid) return null;
+    return faceUvOfPoint(face.toFace, hit.point, Number(grid.pixel_size_um), grid.width_px, grid.height_px);
+  }
 
   function startDrawing() {
     stopTools(); // one tool takes the clicks at a time
@@ -275,6 +287,8 @@ export function bindAnnotations(viewer, { container, canvas, stopTools }) {
     }
     const whole = Boolean(viewer.model?.parts);
     const gridOf = (part) => {
+      const grid = viewer.model.tiles?.faceGrid?.(part); // a streamed tablet's face
+      if (grid) return { width: grid.width_px, height: grid.height_px };
       const i = viewer.model.parts.names.indexOf(part);
       const img = viewer.model.assets.faces?.[i]?.normals?.image;
       return img ? { width: img.width, height: img.height } : null;

@@ -113,7 +113,16 @@ const licence = bindLicenceForm({
   },
 });
 
-const annotations = bindAnnotations(viewer, { container: $('annotations'), canvas: $('viewer'), stopTools: () => ui.stopTools() });
+// Drawing a region takes the clicks: the measuring tools and the Read panel's (section, best
+// light) stop, or a click would count for two tools.
+const annotations = bindAnnotations(viewer, {
+  container: $('annotations'),
+  canvas: $('viewer'),
+  stopTools: () => {
+    ui.stopTools();
+    scholar.onAction('cancel');
+  },
+});
 
 /** The tablet and model on screen, for citations and exported files. */
 function describeShown() {

@@ -130,6 +130,35 @@ export async function loadQualityMaps(get, qualityNames) {
 }
 
 /**
+ * The quality maps of a whole tablet's faces: each face's own ({@link loadQualityMaps}, named
+ * as in a face model, `quality/<map>.npy`, relative to the face's folder) and one entry per
+ * map name for the page's select and legend, its range the 2nd–98th percentiles of every
+ * face's values pooled (one legend reads the whole tablet; a face's map is drawn against it).
+ * @param {(name: string) => Promise<ArrayBuffer>} get
+ * @param {{prefix: string | null, quality: string[]}[]} faceAssets {@link classifyFaceAssets} per face
+ * @returns {Promise<{perFace: object[][], merged: {name: string, texture: object, range: number[]}[]}>}
+ */
+export async function loadFaceQualityMaps(get, faceAssets) {
+  const perFace = await Promise.all(
+    faceAssets.map(async (fa) => {
+      if (!fa.prefix || !fa.quality?.length) return [];
+      const maps = await loadQualityMaps(get, fa.quality.map((n) => `${fa.prefix}${n}`));
+      return maps.map((m, i) => ({ ...m, name: fa.quality[i] }));
+    }),
+  );
+  const all = perFace.flat();
+  const merged = [...new Set(all.map((m) => m.name))].sort().map((name) => {
+    const maps = all.filter((m) => m.name === name);
+    const values = maps.map((m) => m.texture.image?.data);
+    const range = values.every((v) => v instanceof Float32Array)
+      ? pooledRobustRange(values)
+      : [Math.min(...maps.map((m) => m.range[0])), Math.max(...maps.map((m) => m.range[1]))];
+    return { name, texture: maps[0].texture, range };
+  });
+  return { perFace, merged };
+}
+
+/**
  * A float map (.npy, rows × cols) as a single-channel float texture plus a robust display
  * range (2nd to 98th percentile of its finite values).
  */
@@ -147,9 +176,23 @@ export function npyToTexture(buffer) {
 
 /** 2nd and 98th percentiles of the finite values (a subsample of at most ~100k). */
 export function robustRange(values) {
-  const step = Math.max(1, Math.floor(values.length / 100000));
+  return pooledRobustRange([values]);
+}
+
+/**
+ * 2nd and 98th percentiles of the finite values of several maps taken together (a whole
+ * tablet's faces, one legend for all), each subsampled with the same step so that every
+ * face weighs by its pixel count (at most ~100k values in all).
+ * @param {ArrayLike<number>[]} arrays
+ * @returns {[number, number]}
+ */
+export function pooledRobustRange(arrays) {
+  const total = arrays.reduce((n, a) => n + a.length, 0);
+  const step = Math.max(1, Math.floor(total / 100000));
   const sample = [];
-  for (let i = 0; i < values.length; i += step) if (Number.isFinite(values[i])) sample.push(values[i]);
+  for (const values of arrays) {
+    for (let i = 0; i < values.length; i += step) if (Number.isFinite(values[i])) sample.push(values[i]);
+  }
   if (!sample.length) return [0, 1];
   sample.sort((a, b) => a - b);
   const lo = sample[Math.floor(0.02 * (sample.length - 1))];
@@ -178,6 +221,12 @@ export function classifyFaceAssets(assets, name) {
   );
   const c = classifyAssets(own);
   const full = (n) => (n ? prefix + n : null);
+  // Its quality maps, named as in a face model (quality/<map>.npy), so one name picks the
+  // same map on every face (the quality mode's select).
+  const quality = Object.keys(assets ?? {})
+    .filter((n) => n.startsWith(`${prefix}quality/`) && /^[^/]+\.(npy|png)$/.test(n.slice(prefix.length + 8)))
+    .map((n) => n.slice(prefix.length))
+    .sort();
   return {
     normals: full(c.normals),
     curvature: c.curvature.map(full),
@@ -189,6 +238,8 @@ export function classifyFaceAssets(assets, name) {
     trustMeta: full(c.trustMeta),
     uncertainty: full(c.uncertainty),
     height: full(c.height),
+    quality,
+    prefix,
   };
 }
 
@@ -203,6 +254,8 @@ const NO_FACE_ASSETS = Object.freeze({
   trustMeta: null,
   uncertainty: null,
   height: null,
+  quality: [],
+  prefix: null,
 });
 
 /**
@@ -370,7 +423,10 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
       accessibility: null,
       gloss: null,
       trust: null, // {texture, meta} once loaded, false when the face has no trust.png
+      quality: null, // its quality maps once loaded ([] when it has none)
     }));
+    // A whole tablet's quality maps are its faces' (quality/<map>.npy in each face's folder).
+    if (out.faces.length) names.quality = [...new Set(out.faces.flatMap((f) => f.assets.quality))].sort();
     // Every face's full-resolution normals load with the mesh (they are what relights it),
     // and its measured gloss (natural colour) where its scan had one.
     await Promise.all(
@@ -437,6 +493,19 @@ export async function loadModelAssets(assets, { onProgress = () => {}, signal } 
       }
       out.trust = await loadTrustMap(get, names.trust, names.trustMeta);
       track(out.trust.texture);
+      return;
+    }
+    if (kind === 'quality' && out.faces.length) {
+      // A whole tablet: each face's own quality maps on its own grid, one legend for all.
+      const { perFace, merged } = await loadFaceQualityMaps(
+        get,
+        out.faces.map((f) => f.assets),
+      );
+      out.faces.forEach((f, i) => {
+        f.quality = perFace[i];
+        for (const q of perFace[i]) track(q.texture);
+      });
+      out.quality = merged;
       return;
     }
     if (out.faces.length && kind !== 'quality') {

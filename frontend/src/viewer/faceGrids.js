@@ -104,5 +104,25 @@ export function pointsOnOneFace(points, faceOf, faces) {
       `the ends lie on two faces (${faces[idx[0]].name}, ${faces[idx.find((i) => i !== idx[0])].name}): each face has its own height grid, pick both on one`,
     );
   }
-  return { face: idx[0], points: points.map((p) => transformPoint(faces[idx[0]].toFace, p)) };
+  const face = faces[idx[0]];
+  // A streamed tablet's face has its frame once a tile of it has loaded (tiles.js faceFrame).
+  if (!face.toFace) throw new RangeError(`the face ${face.name} is not loaded yet`);
+  return { face: idx[0], points: points.map((p) => transformPoint(face.toFace, p)) };
+}
+
+/**
+ * Texture coordinates of a model point on a face's image grid (u = (c + ½)/W, v = (r + ½)/H
+ * with pixel (r, c) at (c·s, r·s) in the face's scan frame, SCAN_BUNDLE.md): what a pick on
+ * model.glb's face gives as its uv, for a streamed tablet whose hits carry a tile's own uv.
+ * @param {ArrayLike<number>} toFace the face's T⁻¹, column-major
+ * @param {number[]} point model mm
+ * @param {number} pixelSizeUm s
+ * @param {number} widthPx W
+ * @param {number} heightPx H
+ * @returns {[number, number]}
+ */
+export function faceUvOfPoint(toFace, point, pixelSizeUm, widthPx, heightPx) {
+  if (!(pixelSizeUm > 0 && widthPx > 0 && heightPx > 0)) throw new RangeError('the face grid needs a pixel size and a size');
+  const [x, y] = transformPoint(toFace, point);
+  return [((x * 1000) / pixelSizeUm + 0.5) / widthPx, ((y * 1000) / pixelSizeUm + 0.5) / heightPx];
 }

@@ -290,6 +290,8 @@ export const PART_UNIFORMS = Object.freeze([
   'uTrustMap', // each face its own trust map (worker/register/run.py), on its own grid
   'uHasTrust',
   'uFaceUv', // a streamed tile's rectangle of its face's grid (tiles.js tileFaceUv)
+  'uQualityMap', // each face its own quality map, on its own grid (the range is shared)
+  'uHasQuality',
 ]);
 
 /**
@@ -328,6 +330,8 @@ export function createPartMaterial(base, face, { seamDepthMm }) {
   uniforms.uHasAccess.value = false;
   uniforms.uTrustMap.value = blank;
   uniforms.uHasTrust.value = false;
+  uniforms.uQualityMap.value = blank;
+  uniforms.uHasQuality.value = false;
   return new THREE.ShaderMaterial({
     name: 'RelightPartMaterial',
     glslVersion: THREE.GLSL3,
@@ -348,19 +352,37 @@ export function boundModes(shading) {
 }
 
 /**
+ * The quality map of a face chosen by the page's select: the one named `name`, else the
+ * face's first (as the base material's), or null when the face has none.
+ * @param {{name: string}[] | null | undefined} maps
+ * @param {string | null | undefined} name
+ */
+export function chooseQualityMap(maps, name) {
+  if (!maps?.length) return null;
+  return maps.find((q) => q.name === name) ?? maps[0];
+}
+
+/**
  * The shading-mode maps of one face of a whole tablet (or of one streamed tile): its own
- * curvature, accessibility and trust map, for the main mode and the lens' mode
- * (`shading.lensMode`, {@link boundModes}); the quality map is the base material's (shared).
+ * curvature, accessibility, quality and trust map, for the main mode and the lens' mode
+ * (`shading.lensMode`, {@link boundModes}); the quality map's range is the base material's
+ * (shared: one legend for every face).
  * @param {THREE.ShaderMaterial} m from {@link createPartMaterial}
  * @param {object} face assets.js' face record (`curvature` layers, `accessibility` texture,
- *   `trust` {texture} or false/null/undefined)
- * @param {{mode: string, curvatureScale: number, lensMode?: string | null}} shading
+ *   `quality` [{name, texture}], `trust` {texture} or false/null/undefined)
+ * @param {{mode: string, curvatureScale: number, lensMode?: string | null, quality?: string | null}} shading
  */
 export function applyPartShading(m, face, shading) {
   const u = m.uniforms;
   const modes = boundModes(shading);
   u.uHasCurvature.value = false;
   u.uHasAccess.value = false;
+  u.uHasQuality.value = false;
+  const q = modes.has('quality') ? chooseQualityMap(face.quality, shading.quality) : null;
+  if (q) {
+    u.uQualityMap.value = q.texture;
+    u.uHasQuality.value = true;
+  }
   if (modes.has('curvature') && face.curvature?.length) {
     const layer = face.curvature[Math.min(shading.curvatureScale, face.curvature.length - 1)];
     u.uCurvatureMap.value = layer.texture;

@@ -73,12 +73,14 @@ export function missingMessage(mode, assets, errors = {}, { normalsNote = true }
 function missingOnFaces(mode, assets, errors, normalsNote) {
   const need = MODE_NEEDS[mode];
   const faces = assets.faces;
+  // A streamed face's tiles carry its normals, albedo, curvature and accessibility (the
+  // tiles' contract, docs/tiles.md); its whole-face maps are assets as on model.glb's faces.
   const has = {
-    normals: (f) => Boolean(f.normals),
-    albedo: (f) => Boolean(f.albedo),
-    curvature: (f) => f.assets.curvature.length > 0,
-    accessibility: (f) => Boolean(f.assets.accessibility),
-    quality: () => assets.names.quality.length > 0,
+    normals: (f) => f.streamed || Boolean(f.normals),
+    albedo: (f) => f.streamed || Boolean(f.albedo),
+    curvature: (f) => f.streamed || f.assets.curvature.length > 0,
+    accessibility: (f) => f.streamed || Boolean(f.assets.accessibility),
+    quality: (f) => (f.assets.quality?.length ?? 0) > 0, // each face's own (quality/*.npy)
     trust: (f) => Boolean(f.assets.trust), // each face's own (worker/register/run.py)
   };
   const notes = [];
@@ -91,7 +93,7 @@ function missingOnFaces(mode, assets, errors, normalsNote) {
     else if (errors[need]) notes.push(`Could not load ${file}: ${errors[need]}`);
     else if (LAZY_KINDS[mode] && assets[need] === null) notes.push(`Loading ${file}…`);
   }
-  const flat = faces.filter((f) => !f.normals);
+  const flat = faces.filter((f) => !has.normals(f));
   if (normalsNote && flat.length && need !== 'normals') {
     notes.push(
       flat.length === faces.length

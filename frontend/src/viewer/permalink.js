@@ -184,7 +184,9 @@ export function decodeViewState(fragment) {
     else ignored.push('cs');
   });
   take('ex', parseNumber(p.get('ex'), 0, 20), (v) => (s.exaggeration = v));
-  take('qm', /^[\w.-]{1,100}$/.test(p.get('qm') ?? '') ? p.get('qm') : undefined, (v) => (s.quality = v));
+  // A quality map's asset name, e.g. quality/walls.npy (folders allowed; it only selects among
+  // the model's own maps).
+  take('qm', /^[\w.-]+(\/[\w.-]+)*$/.test(p.get('qm') ?? '') && p.get('qm').length <= 100 ? p.get('qm') : undefined, (v) => (s.quality = v));
   take('tl', TRUST_LAYERS.includes(p.get('tl')) ? p.get('tl') : undefined, (v) => (s.trustLayer = v));
 
   // Which names exist is known only once the model is loaded: the viewer ignores unknown ones.

@@ -80,3 +80,16 @@ export function faceInView(faces, viewDir) {
   }
   return best;
 }
+
+/**
+ * The face (of {@link faceFrames}) a picked part names: model.glb's parts are named by the
+ * scan's label, a streamed tablet's tiles by the face's asset folder (tiles' `dh_face`, the
+ * label with unsafe characters replaced, assets.faceAssetPrefix), so either matches.
+ * @param {Array<{label: string, prefix: string}>} faces
+ * @param {string | null | undefined} part
+ */
+export function faceOfPart(faces, part) {
+  if (part == null) return null;
+  const prefix = `${faceAssetPrefix(part)}/`;
+  return faces.find((f) => f.label === part) ?? faces.find((f) => f.prefix === prefix) ?? null;
+}

@@ -9,7 +9,7 @@
  */
 
 import { lightAngles, lightDirection } from './light.js';
-import { faceFrames, faceInView, scanToTabletDir, scanToTabletPoint, tabletToScanDir } from './photoFaces.js';
+import { faceFrames, faceInView, faceOfPart, scanToTabletDir, scanToTabletPoint, tabletToScanDir } from './photoFaces.js';
 
 const DEG = 180 / Math.PI;
 
@@ -113,7 +113,7 @@ export function bindPhotoPanel(viewer, els) {
     if (sources.length === 1) return sources[0];
     const rect = els.canvas?.getBoundingClientRect();
     const hit = rect ? viewer.pick(rect.left + rect.width / 2, rect.top + rect.height / 2) : null;
-    const under = hit?.part != null && sources.find((s) => s.label === hit.part);
+    const under = faceOfPart(sources, hit?.part);
     if (under) return under;
     const { position, target } = viewer.getState().camera;
     const dir = target.map((t, i) => t - position[i]);

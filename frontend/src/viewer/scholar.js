@@ -12,7 +12,7 @@ import { createPicker, pixelSizeFromMesh } from './measure.js';
 import { parseNpy } from './npy.js';
 import { bestLight, rakingSet, shadeCrop } from './rightLight.js';
 import { planeToFace, pointsOnOneFace, transformPoint } from './faceGrids.js';
-import { chainSegments, gridSectionSegments, planeThroughLine, sectionSegments, sectionSvg, toPlane } from './section.js';
+import { boxCorners, chainSegments, gridSectionSegments, planeRowSpan, planeThroughLine, sectionSegments, sectionSvg, toPlane } from './section.js';
 import { distanceUncertaintyAxesMm, distanceUncertaintyMm, sigmaAlongLine, sigmaAt, trustLegend } from './trust.js';
 
 const $ = (id) => document.getElementById(id);
@@ -107,7 +107,8 @@ export function bindScholarTools(viewer, context) {
           url,
           promise: fetchBytes(url).then((buf) => {
             const { shape, data } = parseNpy(buf);
-            let pixelSizeUm = context.getPixelSizeUm();
+            // The report's, else a streamed face's tiles index, else fitted on the mesh.
+            let pixelSizeUm = context.getPixelSizeUm() ?? viewer.model.tiles?.heights?.pixelSizeUm ?? null;
             if (!pixelSizeUm) {
               const g = viewer.model.mesh.geometry;
               pixelSizeUm = pixelSizeFromMesh(g.attributes.position.array, g.attributes.uv.array, shape[1]);
@@ -144,6 +145,7 @@ export function bindScholarTools(viewer, context) {
     return faceGrids.get(url);
   }
   async function facePixelSize(face) {
+    if (face.pixelSizeUm) return face.pixelSizeUm; // a streamed face's tiles index
     const fromReport = context.facePixelSizeUm?.(face.name);
     if (fromReport) return fromReport;
     const url = context.assetUrl(face.assets.trustMeta);
@@ -181,7 +183,8 @@ export function bindScholarTools(viewer, context) {
       points.map(async (p) => {
         const i = viewer.faceOfPoint(p);
         const face = faces()[i];
-        const g = face ? await faceGrid(face, 'uncertainty') : null;
+        // (a streamed face's frame is known once one of its tiles has loaded)
+        const g = face?.toModel ? await faceGrid(face, 'uncertainty') : null;
         if (!g) return null;
         // The face's viewing axis (scan-frame z) in the model frame: column 2 of its transform.
         const m = face.toModel;
@@ -269,15 +272,12 @@ export function bindScholarTools(viewer, context) {
   canvas.addEventListener('pointerup', onUp);
   const sectionPicker = createPicker(viewer, canvas, { onDone: (points) => cutSection(points) });
 
-  const TOOL_NAMES = { light: 'Best light', section: 'Section' };
   function setTool(next) {
     tool = tool === next ? null : next;
-    // A streamed model has no one mesh nor normal map in memory (tiles come and go with the
-    // camera, tiles.js): the best light has nothing to search; a section cuts a streamed
-    // face's full-resolution heights (its rows, by Range reads), not yet a streamed whole
-    // tablet's (its heights are per face).
+    // A streamed model's section cuts its full-resolution heights by Range reads (a face's
+    // rows, or each face's of a whole tablet); one without them (no height.f32) is refused.
     const streamed = viewer.model?.tiles;
-    const refused = tool && streamed && !(tool === 'section' && streamed.heights) ? tool : null;
+    const refused = tool === 'section' && streamed && !streamed.heights && streamed.kind !== 'tablet' ? tool : null;
     if (refused) tool = null;
     $('best-light').setAttribute('aria-pressed', String(tool === 'light'));
     $('section').setAttribute('aria-pressed', String(tool === 'section'));
@@ -290,13 +290,7 @@ export function bindScholarTools(viewer, context) {
     }
     else if (tool === 'section') say('Click the two ends of the section line.');
     if (tool) canvas.classList.add('picking');
-    if (refused) {
-      say(
-        refused === 'section'
-          ? 'Section: not available on a streamed whole tablet yet; its heights are per face, each on its own grid.'
-          : `${TOOL_NAMES[refused]}: not available on a streamed (tiled) model yet; its mesh and maps are loaded tile by tile.`,
-      );
-    }
+    if (refused) say(`Section: this streamed model has no full-resolution heights (tiles/height.f32) to cut.`);
   }
   function say(text) {
     $('readout').textContent = text;
@@ -304,14 +298,33 @@ export function bindScholarTools(viewer, context) {
   $('best-light').addEventListener('click', () => setTool('light'));
   $('section').addEventListener('click', () => setTool('section'));
 
-  /** The normal map (and albedo) of the part hit, its rotation to the model frame (row-major). */
+  /**
+   * The normal map (and albedo) of what was hit, its rotation to the model frame (row-major),
+   * and `same(other)`: whether another hit is on the same map. A streamed model: the hit
+   * tile's own maps (its uv span them; at full zoom they are the full-resolution normals); a
+   * whole tablet: the hit face's (hit.part is its name); else the model's.
+   */
   function mapsOfHit(hit) {
     const a = viewer.model.assets;
-    if (a.faces?.length && hit.part != null && a.faces[hit.part]) {
-      const f = a.faces[hit.part];
-      return { normals: f.normals?.image, albedo: f.albedo?.image ?? null, rotation: f.rotation.clone().transpose().elements };
+    const tileMaterial = viewer.model.tiles?.has(hit.object?.material) ? hit.object.material : null;
+    if (tileMaterial) {
+      const u = tileMaterial.uniforms;
+      return {
+        normals: u.uHasNormalMap.value ? u.uNormalMap.value.image : null,
+        albedo: u.uHasAlbedo.value ? u.uAlbedoMap.value.image : null,
+        rotation: u.uObjectToWorld.value.clone().transpose().elements,
+        same: (other) => other?.object === hit.object,
+        texelUm: (context.getPixelSizeUm() ?? viewer.model.tiles.heights?.pixelSizeUm ?? a.faces?.find((f) => f.name === hit.part)?.pixelSizeUm ?? NaN) *
+          (tileMaterial.userData.tile?.pixel_step ?? NaN),
+      };
     }
-    return { normals: a.normals?.image, albedo: a.albedo?.image ?? null, rotation: null };
+    const f = a.faces?.length && hit.part != null ? a.faces.find((face) => face.name === hit.part) : null;
+    const same = (other) => (other?.part ?? null) === (hit.part ?? null);
+    if (f) {
+      const texelUm = context.facePixelSizeUm?.(f.name) ?? context.getPixelSizeUm();
+      return { normals: f.normals?.image, albedo: f.albedo?.image ?? null, rotation: f.rotation.clone().transpose().elements, same, texelUm };
+    }
+    return { normals: a.normals?.image, albedo: a.albedo?.image ?? null, rotation: null, same, texelUm: context.getPixelSizeUm() };
   }
 
   function crop(image, sx, sy, sw, sh, ow, oh) {
@@ -331,8 +344,8 @@ export function bindScholarTools(viewer, context) {
     const W = maps.normals.width;
     const H = maps.normals.height;
     if ($('region-shape').value === 'rectangle') {
-      if (!corner || (corner.hit.part ?? null) !== (hit.part ?? null)) {
-        corner = { hit };
+      if (!corner || !corner.maps.same(hit)) {
+        corner = { hit, maps };
         viewer.setMarks([hit.point]);
         return say('Best light: click the opposite corner of the rectangle.');
       }
@@ -348,13 +361,12 @@ export function bindScholarTools(viewer, context) {
     // Texels per mm at the point: from a second pick a few pixels away (any model, any face).
     const probe = viewer.pick(clientX + 6, clientY) ?? viewer.pick(clientX - 6, clientY);
     let texPerMm = null;
-    if (probe?.uv && (probe.part ?? null) === (hit.part ?? null)) {
+    if (probe?.uv && maps.same(probe)) {
       const dmm = Math.hypot(...probe.point.map((v, k) => v - hit.point[k]));
       const dtex = Math.hypot((probe.uv[0] - hit.uv[0]) * W, (probe.uv[1] - hit.uv[1]) * H);
       if (dmm > 0 && dtex > 0) texPerMm = dtex / dmm;
     }
-    const pixelSizeUm = context.getPixelSizeUm();
-    if (!texPerMm) texPerMm = pixelSizeUm ? 1000 / pixelSizeUm : null;
+    if (!texPerMm) texPerMm = maps.texelUm > 0 ? 1000 / maps.texelUm : null;
     if (!texPerMm) return say('Best light: cannot tell the scale here; click nearer the middle of a face.');
     const radiusMm = Math.min(Math.max(Number($('region-mm').value) || 3, 0.2), 50);
     const rTex = Math.max(3, radiusMm * texPerMm);
@@ -444,6 +456,7 @@ export function bindScholarTools(viewer, context) {
   async function cutFinest(plane, points) {
     const model = viewer.model;
     const streamed = model.tiles?.heights;
+    if (model.tiles?.kind === 'tablet') return cutStreamedTablet(plane);
     if (streamed) {
       const s = streamed.pixelSizeUm;
       const part = await streamed.reader.gridForSegment(points[0], points[1], s);
@@ -473,6 +486,33 @@ export function bindScholarTools(viewer, context) {
     if (grid) return { segments: gridSectionSegments(grid, plane), source: 'heights' };
     const ranges = mats && g.groups.length ? g.groups.filter((gr) => mats[gr.materialIndex]?.visible !== false) : null;
     return { segments: sectionSegments(g.attributes.position.array, g.index?.array ?? null, plane, ranges), source: 'mesh' };
+  }
+
+  /**
+   * A streamed whole tablet's cut: each shown face's full-resolution heights (its height.f32),
+   * only the rows where the plane can meet the tablet (section.js planeRowSpan: the plane
+   * through the tablet's box, taken into the face's scan frame), cut in that frame and the
+   * outline taken back into the tablet's, as model.glb's faces are cut from their height.npy.
+   */
+  async function cutStreamedTablet(plane) {
+    const model = viewer.model;
+    const parts = [];
+    let rowsRead = 0;
+    for (const face of faces()) {
+      const rows = face.heights?.();
+      if (!rows || !face.toFace || (model.parts && !model.parts.isVisible(face.name))) continue;
+      const p = planeToFace(plane, face.toModel, face.toFace);
+      const corners = boxCorners(model.box).map((c) => transformPoint(face.toFace, c));
+      const span = planeRowSpan(p, corners, rows.pixelSizeUm, rows.reader.rows);
+      if (!span) continue;
+      const [r0, r1] = span;
+      const heightUm = await rows.reader.readRows(r0, r1);
+      const grid = { heightUm, rows: r1 - r0, cols: rows.reader.cols, pixelSizeUm: rows.pixelSizeUm };
+      parts.push(gridSectionSegments(grid, p, { row0: r0, toModel: face.toModel }));
+      rowsRead += r1 - r0;
+    }
+    if (!rowsRead) throw new Error('no shown face of this streamed tablet has full-resolution heights loaded here yet');
+    return { segments: concat(parts), source: 'heights', rows: rowsRead };
   }
 
   let cutting = 0; // the latest cut (an older one finishing late is dropped)

@@ -263,3 +263,53 @@ export function sectionSvg(lines2d, about = {}) {
 </svg>
 `;
 }
+
+/**
+ * The eight corners of a box {min, max} (mm), corner i taking max along x when bit 0 of i is
+ * set, along y for bit 1, along z for bit 2 (so the box's edges join corners one bit apart).
+ * @param {{min: number[], max: number[]}} box
+ * @returns {number[][]}
+ */
+export function boxCorners({ min, max }) {
+  return Array.from({ length: 8 }, (_, i) => [0, 1, 2].map((k) => (i & (1 << k) ? max[k] : min[k])));
+}
+
+/**
+ * The rows of an image grid where a plane can meet a solid: the y extent of the plane's cut
+ * through a parallelepiped (the tablet's box taken into a face's scan frame, corners as
+ * {@link boxCorners} orders them), in rows of pixel size s (row r at y = r·s, SCAN_BUNDLE.md),
+ * widened by one row either side for the cells that straddle its ends and clamped to the
+ * grid. What a streamed whole tablet's section reads of each face's heights (heightRows.js):
+ * the rows the cut may pass, not the whole face.
+ * @param {{origin: number[], normal: number[]}} plane in the face's frame, mm
+ * @param {number[][]} corners 8 points, mm
+ * @param {number} pixelSizeUm
+ * @param {number} rows the grid's height H
+ * @returns {[number, number] | null} [r0, r1) or null when the plane misses the solid
+ */
+export function planeRowSpan(plane, corners, pixelSizeUm, rows) {
+  if (!(pixelSizeUm > 0)) throw new RangeError(`pixelSizeUm must be > 0, got ${pixelSizeUm}`);
+  if (corners.length !== 8) throw new RangeError(`expected 8 corners, got ${corners.length}`);
+  const d = corners.map((c) => dot(sub(c, plane.origin), plane.normal));
+  let lo = Infinity;
+  let hi = -Infinity;
+  for (let i = 0; i < 8; i++) {
+    if (d[i] === 0) {
+      lo = Math.min(lo, corners[i][1]);
+      hi = Math.max(hi, corners[i][1]);
+    }
+    for (const bit of [1, 2, 4]) {
+      const j = i | bit;
+      if (j === i || d[i] * d[j] >= 0) continue; // the edge i–j does not cross the plane
+      const t = d[i] / (d[i] - d[j]);
+      const y = corners[i][1] + t * (corners[j][1] - corners[i][1]);
+      lo = Math.min(lo, y);
+      hi = Math.max(hi, y);
+    }
+  }
+  if (!(hi >= lo)) return null;
+  const s = pixelSizeUm / 1000;
+  const r0 = Math.max(0, Math.floor(lo / s) - 1);
+  const r1 = Math.min(rows, Math.ceil(hi / s) + 2);
+  return r1 > r0 ? [r0, r1] : null;
+}

@@ -21,9 +21,9 @@ import * as THREE from 'three';
 import { TilesRenderer } from '3d-tiles-renderer/three';
 import { GLTFExtensionsPlugin } from '3d-tiles-renderer/three/plugins';
 import { MeshoptDecoder } from 'meshoptimizer/decoder';
-import { classifyAssets, disposeTexture, faceAssetPrefix, fetchBytes, loadQualityMaps, loadTrustMap } from './assets.js';
+import { classifyAssets, classifyFaceAssets, disposeTexture, faceAssetPrefix, fetchBytes, loadFaceQualityMaps, loadQualityMaps, loadTrustMap } from './assets.js';
 import { createHeightRows } from './heightRows.js';
-import { applyPartShading, createPartMaterial } from './material.js';
+import { applyPartShading, boundModes, createPartMaterial } from './material.js';
 import { bilinearHeight } from './profile.js';
 import { installFacingError } from './tileFacing.js';
 import { mergeTrustMeta } from './trust.js';
@@ -71,6 +71,22 @@ function textureBytes(t) {
   if (!img?.width) return 0;
   const bpp = t.type === THREE.FloatType ? 16 : 4;
   return Math.ceil(img.width * img.height * bpp * (t.generateMipmaps ? 4 / 3 : 1));
+}
+
+/**
+ * Bytes a tile's textures hold on the GPU for the cache's accounting: its albedo and normals
+ * (every mode draws them), and each lazily drawn map (curvature, accessibility) only while a
+ * mode that draws it is bound — the main mode or the lens' (material.js boundModes): three.js
+ * uploads a texture when it is first drawn, and applyShading frees it when no longer bound.
+ * @param {{textures: Set<object>, lazy: Map<object, string>}} own the tile's textures, and the
+ *   mode of each lazily drawn one
+ * @param {{mode: string, lensMode?: string | null} | null} shading
+ */
+export function tileTextureBytes(own, shading) {
+  const modes = shading ? boundModes(shading) : new Set();
+  let bytes = 0;
+  for (const t of own.textures) if (!own.lazy.has(t) || modes.has(own.lazy.get(t))) bytes += textureBytes(t);
+  return bytes;
 }
 
 /**
@@ -252,9 +268,13 @@ export async function openTiledModel({
   const perScene = new WeakMap(); // scene → {textures, materials}
   let shading = null;
   const hiddenFaces = new Set(); // a whole tablet's faces not drawn (the page's checkboxes)
-  // Maps of a whole face (not tiled): its trust map {texture} by face name ('' for a face
-  // model), one shared texture per face (loaded once, tiledAssets), bound to its every tile.
-  let trustByFace = new Map();
+  // Maps of a whole face (not tiled): its trust map {texture} and its quality maps
+  // [{name, texture}] by face name ('' for a face model), one shared texture per face and map
+  // (loaded once, tiledAssets), bound to its every tile.
+  const faceMaps = { trust: new Map(), quality: new Map() };
+  // A whole tablet's faces: scan frame (mm) → tablet frame, from the first tile of each face
+  // (its mesh is in the face's scan frame under the face tileset's transform).
+  const faceToModel = new Map();
 
   const relight = {
     name: 'DH_RELIGHT',
@@ -277,6 +297,7 @@ export async function openTiledModel({
         // Object-space normals are in the mesh's frame (scan frame); the world is that frame
         // for a face (identity), a face's rotation into the tablet frame for a whole tablet.
         const toWorld = new THREE.Matrix4().multiplyMatrices(tiles.group.matrix, obj.matrixWorld);
+        if (kind === 'tablet' && !faceToModel.has(tileFace(tile))) faceToModel.set(tileFace(tile), toWorld.clone());
         const rotation = new THREE.Matrix3().setFromMatrix4(new THREE.Matrix4().extractRotation(toWorld));
         // A whole tablet's faces overlap: each face's normals carry its weight in alpha
         // (docs/tiles.md), which the seam depth turns into "the best-measured face is drawn".
@@ -296,7 +317,8 @@ export async function openTiledModel({
         m.userData.face = {
           curvature: maps.curvature ? curvatureLayers(maps.curvature) : [],
           accessibility: maps.accessibility ?? null,
-          trust: faceUv ? (trustByFace.get(m.userData.faceName ?? '') ?? null) : null,
+          trust: faceUv ? (faceMaps.trust.get(m.userData.faceName ?? '') ?? null) : null,
+          quality: faceUv ? (faceMaps.quality.get(m.userData.faceName ?? '') ?? null) : null,
         };
         m.visible = !hiddenFaces.has(m.userData.faceName);
         if (shading) applyPartShading(m, m.userData.face, shading, false);
@@ -312,10 +334,7 @@ export async function openTiledModel({
     // applyShading frees the GPU copy of the other mode's maps).
     calculateBytesUsed(tile, scene) {
       const own = scene && perScene.get(scene);
-      if (!own) return 0;
-      let bytes = 0;
-      for (const t of own.textures) if (!own.lazy.has(t) || own.lazy.get(t) === shading?.mode) bytes += textureBytes(t);
-      return bytes;
+      return own ? tileTextureBytes(own, shading) : 0;
     },
   };
   tiles.registerPlugin(relight);
@@ -380,8 +399,10 @@ export async function openTiledModel({
   }
   const sphere = box.getBoundingSphere(new THREE.Sphere());
 
-  // A whole tablet's heights are per face, each on its own grid: not read here (yet).
+  // A face's full-resolution heights; a whole tablet's are per face, each on its own grid
+  // (faceHeights).
   const heights = kind === 'face' && index.height_raw ? streamedHeights(index, indexUrl) : null;
+  const heightsByFace = new Map();
   let cameraInUse = null;
   let disposed = false;
 
@@ -421,6 +442,27 @@ export async function openTiledModel({
       for (const m of materials) m.visible = !hiddenFaces.has(m.userData.faceName);
       invalidate();
     },
+    /**
+     * A whole tablet's face as an image grid, for the measuring tools (faceGrids.js):
+     * {toModel, toFace} (scan frame mm ↔ tablet frame mm, 4×4 column-major) once a tile of
+     * the face has loaded (null before), as a whole-tablet model.glb's node gives them.
+     */
+    faceFrame(name) {
+      const m = faceToModel.get(name);
+      return m ? { toModel: m.elements.slice(), toFace: m.clone().invert().elements.slice() } : null;
+    },
+    /** A whole tablet's face's grid (its tiles/faces/<label>/index.json), or null. */
+    faceGrid(name) {
+      return faceGrids.get(name) ?? null;
+    },
+    /** A whole tablet's face's full-resolution heights (its height.f32 by HTTP Range, as a
+     * face's `heights`), or null. */
+    faceHeights(name) {
+      const grid = faceGrids.get(name);
+      if (!grid?.height_raw) return null;
+      if (!heightsByFace.has(name)) heightsByFace.set(name, streamedHeights(grid, grid.indexUrl));
+      return heightsByFace.get(name);
+    },
     /** The face (of a whole tablet) a picked object belongs to, or null. */
     faceOf(object) {
       return materials.has(object?.material) ? (object.material.userData.faceName ?? null) : null;
@@ -458,28 +500,31 @@ export async function openTiledModel({
      * quality map is not): one texture per face for the model's lifetime, held by the
      * model's assets (tiledAssets), not by a tile.
      */
-    setFaceMaps({ trust = new Map() } = {}) {
-      trustByFace = trust;
+    setFaceMaps(maps = {}) {
+      for (const key of ['trust', 'quality']) if (maps[key]) faceMaps[key] = maps[key];
       for (const m of materials) {
-        m.userData.face.trust = m.userData.faceUv ? (trust.get(m.userData.faceName ?? '') ?? null) : null;
+        const face = m.userData.faceName ?? '';
+        m.userData.face.trust = m.userData.faceUv ? (faceMaps.trust.get(face) ?? null) : null;
+        m.userData.face.quality = m.userData.faceUv ? (faceMaps.quality.get(face) ?? null) : null;
         if (shading) applyPartShading(m, m.userData.face, shading, false);
       }
       invalidate();
     },
     /** Apply a shading state ({mode, curvatureScale}) to every tile, now and on load. */
     applyShading(s) {
-      const before = shading?.mode;
+      const before = shading ? boundModes(shading) : new Set();
       shading = { ...s };
+      const now = boundModes(shading);
+      // Maps no longer bound (by the main mode or the lens'): free their GPU copies (the
+      // images stay, for coming back).
+      const left = [...before].filter((mode) => !now.has(mode));
       for (const m of materials) {
         applyPartShading(m, m.userData.face, shading, false);
-        if (before !== shading.mode) {
-          // Leaving a mode: free the GPU copies of its maps (the images stay, for coming back).
-          const f = m.userData.face;
-          if (before === 'curvature' && f.curvature[0]) f.curvature[0].texture.dispose();
-          if (before === 'accessibility' && f.accessibility) f.accessibility.dispose();
-        }
+        const f = m.userData.face;
+        if (left.includes('curvature') && f.curvature[0]) f.curvature[0].texture.dispose();
+        if (left.includes('accessibility') && f.accessibility) f.accessibility.dispose();
       }
-      if (before !== shading.mode) recount();
+      if (left.length || [...now].some((mode) => !before.has(mode))) recount();
     },
     setBudgetMb(mb) {
       if (!(mb > 0)) throw new RangeError(`budget must be > 0 MB, got ${mb}`);
@@ -550,7 +595,8 @@ async function fetchFaceIndexes(index, indexUrl, signal) {
       const faceUrl = resolveTilesUrl(indexUrl, path);
       const r = await fetch(faceUrl, { signal, credentials: 'same-origin' });
       if (!r.ok) throw new Error(`${faceUrl}: HTTP ${r.status}`);
-      return [folder.split('/').pop(), validateIndex(await r.json())];
+      // indexUrl: what the face's own paths (height_raw) are relative to
+      return [folder.split('/').pop(), { ...validateIndex(await r.json()), indexUrl: faceUrl }];
     }),
   );
   return new Map(entries);
@@ -585,8 +631,8 @@ function errorPerTexel(tiles, pixelSizeUm) {
  * accessibility (the contract), so those never load lazily. The face's trust map and quality
  * maps are whole-face images (not tiled): they load on first use (`ensure`), once, and every
  * tile samples them through its rectangle of the face's grid (tileFaceUv). A whole tablet's
- * tiles get their own face's trust map (faces/<label>/trust.png); its quality maps are not
- * bound to its tiles yet.
+ * tiles get their own face's trust map and quality maps (faces/<label>/trust.png,
+ * faces/<label>/quality/*.npy), and its `faces` list each face for the measuring tools.
  * @param {object} tiled from openTiledModel
  * @param {Record<string, string>} [assets] the model's asset name → URL map (the API's)
  * @param {{signal?: AbortSignal}} [options]
@@ -605,8 +651,28 @@ export function tiledAssets(tiled, assets = {}, { signal } = {}) {
     }
   }
   const trustName = trustNames.size ? [...trustNames.values()][0][0] : null;
-  // The quality maps: a face model's (one grid); a whole tablet's faces' are not bound yet.
-  const qualityNames = face ? found.quality : [];
+  // A whole tablet's faces, shaped like assets.js' `faces` for the measuring tools and the
+  // notices (faceGrids.js, modes.js): their own assets (faces/<label>/: σ_h, quality maps,
+  // trust), their frames once a tile of theirs has loaded, their heights by Range reads. The
+  // relighting maps are each tile's own (`streamed`: modes.js does not look for them).
+  const faceRecords = face
+    ? []
+    : tiled.faceNames.map((name) => ({
+        name,
+        streamed: true,
+        assets: classifyFaceAssets(assets, name),
+        get toModel() {
+          return tiled.faceFrame(name)?.toModel ?? null;
+        },
+        get toFace() {
+          return tiled.faceFrame(name)?.toFace ?? null;
+        },
+        heights: () => tiled.faceHeights(name),
+        pixelSizeUm: Number(tiled.faceGrid?.(name)?.pixel_size_um) || null,
+        quality: null,
+      }));
+  // The quality maps: a face model's (one grid), or each face's of a whole tablet.
+  const qualityNames = face ? found.quality : [...new Set(faceRecords.flatMap((f) => f.assets.quality))].sort();
   // The curvature scales the page offers (each tile's map and its mip levels, as
   // curvatureLayers); the textures are the tiles' own, the base material gets the blank.
   const blank = tiled.blank;
@@ -634,7 +700,7 @@ export function tiledAssets(tiled, assets = {}, { signal } = {}) {
     // null: present, not loaded yet (modes.js); false / []: the model has none.
     quality: qualityNames.length ? null : [],
     trust: trustName ? null : false,
-    faces: [],
+    faces: faceRecords,
     parts: [],
   };
   const pending = new Map();
@@ -653,10 +719,22 @@ export function tiledAssets(tiled, assets = {}, { signal } = {}) {
           // One legend for a whole tablet's faces (encoded on the same tops: trust.js).
           out.trust = { texture: all[0].texture, meta: face ? all[0].meta : mergeTrustMeta(all.map((t) => t.meta)) };
           tiled.setFaceMaps({ trust: byFace });
-        } else {
+        } else if (face) {
           const maps = await loadQualityMaps(get, qualityNames);
           for (const q of maps) created.push(q.texture);
           out.quality = maps;
+          tiled.setFaceMaps({ quality: new Map([['', maps]]) });
+        } else {
+          // Each face's own maps on its tiles, one legend (pooled range) for the tablet.
+          const { perFace, merged } = await loadFaceQualityMaps(get, faceRecords.map((f) => f.assets));
+          const byFace = new Map();
+          faceRecords.forEach((f, i) => {
+            f.quality = perFace[i];
+            for (const q of perFace[i]) created.push(q.texture);
+            byFace.set(f.name, perFace[i]);
+          });
+          out.quality = merged;
+          tiled.setFaceMaps({ quality: byFace });
         }
       })();
       pending.set(kind, job);

@@ -17,7 +17,7 @@ import { unavailableViewReason } from './views.js';
 import { fmtUm, formatDistance, profileUncertainty } from './trust.js';
 import { describeEnhance } from './enhance.js';
 import { unavailableModeReason } from './modes.js';
-import { pointsOnOneFace } from './faceGrids.js';
+import { pointsOnOneFace, transformPoint } from './faceGrids.js';
 
 const $ = (id) => document.getElementById(id);
 
@@ -105,16 +105,37 @@ export function bindViewerUi(viewer, context) {
     context.measureChanged?.();
     return kind === 'profile' ? showProfile(lastMeasure.points) : showDistance(lastMeasure.points);
   }
+  /**
+   * Picked points put on the full-resolution heights of a streamed model (tiles.js
+   * `onSurface`: a face's, or on a whole tablet each point's own face's, in its scan frame),
+   * whatever level was drawn when picked; others as they are.
+   */
+  async function onFullSurface(points) {
+    const tiled = viewer.model?.tiles;
+    if (tiled?.heights) return tiled.heights.onSurface(points);
+    if (tiled?.kind !== 'tablet') return points;
+    const faces = viewer.model.assets.faces;
+    return Promise.all(
+      points.map(async (p) => {
+        const face = faces[viewer.faceOfPoint(p)];
+        const rows = face?.heights();
+        if (!rows || !face.toFace) return p;
+        const [q] = await rows.onSurface([transformPoint(face.toFace, p)]);
+        return transformPoint(face.toModel, q);
+      }),
+    );
+  }
   async function showDistance(points) {
-    // A streamed model: the picked points on the full-resolution heights (tiles.js).
-    const streamed = viewer.model?.tiles?.heights;
-    if (streamed) points = await streamed.onSurface(points).catch(() => points);
+    const measure = lastMeasure; // a newer measurement replaces this one's readout
+    if (viewer.model?.tiles) points = await onFullSurface(points).catch(() => points);
+    if (lastMeasure !== measure) return;
     const d = distanceMm(points[0], points[1]);
     setReadout(`Distance: ${d.toFixed(2)} mm`);
     $('readout').dataset.distanceMm = String(d);
     // The ± from the model's height uncertainty (trust.js), when it has one.
     const pm = await context.uncertainty?.distance(points).catch(() => null);
-    if (pm != null && lastMeasure?.points === points) {
+    // (not `points`: a streamed model's were moved onto the full-resolution surface)
+    if (pm != null && lastMeasure === measure) {
       setReadout(`Distance: ${formatDistance(d, pm)}`);
       $('readout').dataset.uncertaintyMm = String(pm);
     }
@@ -154,9 +175,18 @@ export function bindViewerUi(viewer, context) {
       } else if (viewer.model?.assets.faces?.length) {
         // A whole tablet: the line on one face, cut from that face's own full-resolution
         // heights in its scan frame (faceGrids.js), as on the face model.
+        // A streamed tablet's face: only the rows the line touches, by Range reads.
         const on = pointsOnOneFace(points, (p) => viewer.faceOfPoint(p), viewer.model.assets.faces);
         const face = viewer.model.assets.faces[on.face];
-        lastProfile = sampleProfile(await loadHeightGrid(face), on.points[0], on.points[1]);
+        const rows = face.heights?.();
+        if (rows) {
+          setReadout('Reading heights…');
+          const part = await rows.reader.gridForSegment(on.points[0], on.points[1], rows.pixelSizeUm);
+          lastProfile = sampleProfile(part.grid, part.start, part.end);
+          heightGrid = { url: null, grid: { pixelSizeUm: rows.pixelSizeUm } };
+        } else {
+          lastProfile = sampleProfile(await loadHeightGrid(face), on.points[0], on.points[1]);
+        }
         lastProfile.face = face.name;
       } else {
         lastProfile = sampleProfile(await loadHeightGrid(), points[0], points[1]);
@@ -452,9 +482,11 @@ export function bindViewerUi(viewer, context) {
     /** The measurement on screen ({tool, points, lengthMm}) or null. */
     measurement: () => lastMeasure,
     /** Show a measurement a permalink carried: marks, readout and (for a profile) the chart. */
-    restoreMeasure(measure) {
+    async restoreMeasure(measure) {
       if (!measure) return;
       viewer.setMarks(measure.points);
+      // A streamed tablet's faces have their frames once their tiles are in (tiles.js).
+      if (viewer.model?.tiles?.kind === 'tablet') await viewer.whenTilesSettled();
       return showMeasure(measure.tool, measure.points);
     },
     /** A lasting notice about the opened link (null: none), shown before any map notice. */

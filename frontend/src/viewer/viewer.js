@@ -18,7 +18,7 @@ import {
 } from './light.js';
 import { createMarks, pickPoint, projectPoint } from './marks.js';
 import { LAZY_KINDS, lensMissingMessage, missingMessage as missingMessageOf } from './modes.js';
-import { applyPartShading, boundModes, createPartMaterial, createRelightMaterial, MODE_INDEX } from './material.js';
+import { applyPartShading, boundModes, chooseQualityMap, createPartMaterial, createRelightMaterial, MODE_INDEX } from './material.js';
 import { defaultViewState, SHADING_MODES } from './permalink.js';
 import { applyHiddenParts, createPartToggles, hiddenParts } from './parts.js';
 import { availableViews, canonicalView } from './views.js';
@@ -287,6 +287,23 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     onChange('enhance');
   }
 
+  /**
+   * Resolves once a streamed model's tiles for the current view are in: after a drawn frame
+   * (which runs the renderer's update) nothing is queued, downloading or parsing, twice in a
+   * row; at once for a single mesh. A streamed tablet's faces get their frames from their
+   * tiles (tiles.js faceFrame), which a measurement restored from a link needs.
+   * @param {number} [timeoutMs] give up (resolve) after this long
+   */
+  async function whenTilesSettled(timeoutMs = 30000) {
+    const deadline = performance.now() + timeoutMs;
+    const frame = () => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)));
+    for (let calm = 0; calm < 2 && model?.tiles && performance.now() < deadline; ) {
+      invalidate();
+      await frame();
+      calm = model?.tiles?.stats().idle ? calm + 1 : 0;
+    }
+  }
+
   /** Resolves when the maps requested so far have loaded (or failed). */
   async function whenIdle() {
     while (pendingLoads.size) await Promise.all([...pendingLoads]);
@@ -299,7 +316,9 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     u.uEmphasis.value = s.exaggeration;
     const a = model?.assets;
     // The maps of the main mode and of the lens' mode (enhance.js: any mode in the lens).
-    const bound = { ...s, lensMode: state.enhance.lens?.mode ?? null };
+    // The quality map by name (the select's), the same on every face of a whole tablet.
+    const q = chooseQualityMap(a?.quality, s.quality);
+    const bound = { ...s, lensMode: state.enhance.lens?.mode ?? null, quality: q?.name ?? null };
     const modes = boundModes(bound);
     u.uHasCurvature.value = false;
     u.uHasAccess.value = false;
@@ -317,8 +336,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       u.uAccessMap.value = a.accessibility;
       u.uHasAccess.value = true;
     }
-    if (modes.has('quality') && a?.quality?.length) {
-      const q = a.quality.find((m) => m.name === s.quality) ?? a.quality[0];
+    if (modes.has('quality') && q) {
       u.uQualityMap.value = q.texture;
       u.uQualityRange.value.set(q.range[0], q.range[1]);
       u.uHasQuality.value = true;
@@ -632,6 +650,16 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
    */
   function faceOfPoint(point) {
     if (!model?.parts || !model.assets.faces?.length) return -1;
+    if (model.tiles) {
+      // A streamed tablet has no one mesh to search: the face drawn at the point, i.e. the
+      // tile hit by the line of sight through it (the point was picked there), when that hit
+      // is the point itself (within a coarse tile's deviation from the surface).
+      const { x, y } = project(point);
+      const hit = pick(x, y);
+      const tol = Math.max(0.5, 0.03 * model.radius);
+      if (!hit?.part || Math.hypot(...hit.point.map((v, k) => v - point[k])) > tol) return -1;
+      return model.assets.faces.findIndex((f) => f.name === hit.part);
+    }
     const g = model.mesh.geometry;
     model.faceSpans ??= groupVertexSpans(g.index?.array ?? null, g.groups);
     const names = model.parts.names;
@@ -871,6 +899,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     /** Adaptive resolution while moving on (default) or off (every frame at full resolution). */
     setAdaptiveResolution: (on) => adaptive.setEnabled(on),
     whenIdle,
+    whenTilesSettled,
     invalidate,
     setEnhance,
     addOverlay,

@@ -44,3 +44,24 @@ describe('a whole tablet\'s faces as image grids', () => {
     expect(() => pointsOnOneFace([[1, 1, 0]], () => -1, faces)).toThrow(/not on any face/);
   });
 });
+
+describe('a streamed face not loaded yet', () => {
+  it('is refused by name rather than read in an unknown frame', () => {
+    const faces = [{ name: 'obverse', toFace: null }];
+    expect(() => pointsOnOneFace([[0, 0, 0], [1, 0, 0]], () => 0, faces)).toThrow(/obverse is not loaded yet/);
+  });
+});
+
+describe("a point's texture coordinates on its face's grid", () => {
+  it('is the uv model.glb gives the pixel there, through the face transform', async () => {
+    const { faceUvOfPoint } = await import('../../src/viewer/faceGrids.js');
+    // A face turned 180° about y and 12 mm behind (x → 20 − x, z → 12 − z).
+    const toModel = new THREE.Matrix4().set(-1, 0, 0, 20, 0, 1, 0, 0, 0, 0, -1, 12, 0, 0, 0, 1);
+    const toFace = toModel.clone().invert().elements;
+    // Pixel (r, c) = (30, 40) at 250 µm: (10, 7.5) mm in the face frame, x = 20 − 10 in the model.
+    const [u, v] = faceUvOfPoint(toFace, [10, 7.5, 11], 250, 80, 60);
+    expect(u).toBeCloseTo((40 + 0.5) / 80, 12);
+    expect(v).toBeCloseTo((30 + 0.5) / 60, 12);
+    expect(() => faceUvOfPoint(toFace, [0, 0, 0], 0, 80, 60)).toThrow(RangeError);
+  });
+});

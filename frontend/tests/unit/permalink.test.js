@@ -28,7 +28,7 @@ function sampleState(i) {
       mode: SHADING_MODES[i % SHADING_MODES.length],
       curvatureScale: i % 3,
       exaggeration: 1 + i / 2,
-      quality: i % 2 ? 'quality_residual.png' : null,
+      quality: [null, 'quality_residual.png', null, 'quality/walls.npy'][i % 4], // a map in its folder too
       trustLayer: ['sources', 'uncertainty', 'disagreement'][i % 3],
     },
     hidden: [[], ['reverse'], ['top', 'left edge, 2nd scan'], ['obverse & co', 'r=1#x']][i % 4],
@@ -131,6 +131,18 @@ describe('measurements in permalinks', () => {
       const { state, ignored } = decodeViewState(bad);
       expect(state.measure).toBeNull();
       expect(ignored).toContain('measurement');
+    }
+  });
+});
+
+describe('the quality map in a link', () => {
+  it('keeps a map named with its folder and refuses empty folders, spaces, long names', () => {
+    const state = defaultViewState();
+    state.shading.quality = 'quality/fringe_disagreement_um.npy';
+    expect(decodeViewState(`#${encodeViewState(state)}`).state.shading.quality).toBe('quality/fringe_disagreement_um.npy');
+    for (const bad of ['quality//x.npy', '/x.npy', 'a b', 'x'.repeat(101)]) {
+      const { ignored } = decodeViewState(`#mode=quality&qm=${encodeURIComponent(bad)}`);
+      expect(ignored).toContain('qm');
     }
   });
 });

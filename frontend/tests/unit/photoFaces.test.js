@@ -77,3 +77,18 @@ describe('faceInView', () => {
     expect(nearestPhoto(index, world).photo.azimuth_deg).toBe(180);
   });
 });
+
+describe('the face a picked part names', () => {
+  it("matches model.glb's label or a streamed tablet's folder name", async () => {
+    const { faceOfPart } = await import('../../src/viewer/photoFaces.js');
+    const faces = [
+      { label: 'sim 0/obverse', prefix: 'faces/sim_0_obverse/' },
+      { label: 'reverse', prefix: 'faces/reverse/' },
+    ];
+    expect(faceOfPart(faces, 'sim 0/obverse')).toBe(faces[0]);
+    expect(faceOfPart(faces, 'sim_0_obverse')).toBe(faces[0]); // a tile's dh_face
+    expect(faceOfPart(faces, 'reverse')).toBe(faces[1]);
+    expect(faceOfPart(faces, 'left')).toBeNull();
+    expect(faceOfPart(faces, null)).toBeNull();
+  });
+});

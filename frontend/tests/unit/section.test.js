@@ -175,3 +175,20 @@ describe('sections of the full-resolution heights', () => {
     expect(Math.abs(lg - length(fromMesh[0])) / lg).toBeLessThan(0.01);
   });
 });
+
+describe('the rows a plane can cut', () => {
+  it('spans the rows where the plane crosses the box, widened by a row, clamped', async () => {
+    const { boxCorners, planeRowSpan } = await import('../../src/viewer/section.js');
+    const corners = boxCorners({ min: [0, 0, -5], max: [10, 8, 0] });
+    expect(corners[0]).toEqual([0, 0, -5]);
+    expect(corners[7]).toEqual([10, 8, 0]);
+    // A plane y = 3 mm (normal along y): rows about 3 mm / 0.1 mm = 30.
+    expect(planeRowSpan({ origin: [0, 3, 0], normal: [0, 1, 0] }, corners, 100, 80)).toEqual([29, 32]);
+    // Tilted in y–z: from y = 2 at z = 0 to y = 3 at z = −5.
+    const n = [0, 5, 1].map((v) => v / Math.hypot(5, 1));
+    expect(planeRowSpan({ origin: [0, 2, 0], normal: n }, corners, 100, 80)).toEqual([19, 32]);
+    // A plane holding the y axis crosses every row; one outside the box none.
+    expect(planeRowSpan({ origin: [4, 0, 0], normal: [1, 0, 0] }, corners, 100, 80)).toEqual([0, 80]);
+    expect(planeRowSpan({ origin: [0, 20, 0], normal: [0, 1, 0] }, corners, 100, 80)).toBeNull();
+  });
+});

@@ -163,7 +163,7 @@ describe('tiledAssets', () => {
     expect(a.quality).toEqual([]);
   });
 
-  it("offers a whole tablet's faces' own trust maps, not its quality maps", () => {
+  it("offers a whole tablet's faces' own trust maps", () => {
     const a = tiledAssets(
       { ...fake('tablet'), faceNames: ['obverse', 'left edge'] },
       {

@@ -280,3 +280,40 @@ def test_the_lens_shows_modes_with_maps_of_their_own(page, whole, tools, mode):
         page.locator("#lens-on").check()
         tools.settle(page)
         _shot(page, "viewer-lens-curvature.png")
+
+
+def test_quality_and_best_light_on_the_whole_tablet(page, whole, tools):
+    """Each face's own quality maps (faces/<label>/quality/*.npy) drawn on it against one
+    legend; the best light reads the normals of the face clicked."""
+    _open(page, whole, "whole", tools)
+    assert page.locator("#mode option[value='quality']").is_enabled()
+    page.locator("#mode").select_option("quality")
+    page.wait_for_function("() => window.hammurabi.viewer.model.assets.quality?.length")
+    page.locator("#quality-map").select_option("quality/fringe_disagreement_um.npy")
+    tools.settle(page)
+    assert page.locator("#notice").is_hidden(), page.locator("#notice").inner_text()
+    assert page.locator("#legend").is_visible()
+    assert "fringe_disagreement_um" in page.locator("#legend").inner_text()
+    has = page.evaluate(
+        "() => window.hammurabi.viewer.model.partMaterials.map((m) => m.uniforms.uHasQuality.value)"
+    )
+    assert len(has) == 6 and all(has), has
+    # The left half of each face has a fringe disagreement (the ramp), the right half none
+    # (NaN: flat grey 0.2 linear, 0.48 in sRGB).
+    px = tools.canvas_pixels(page)
+    model = np.abs(px - BACKGROUND).sum(-1) > 0.05
+    grey = model & (np.abs(px - 0.485).max(-1) < 0.02)
+    ramp = model & (px.max(-1) - px.min(-1) > 0.15)
+    assert grey.sum() > 300 and ramp.sum() > 300, (grey.sum(), ramp.sum())
+    _shot(page, "whole-tablet-quality.png")
+
+    page.locator("#mode").select_option("clay")
+    box = page.locator("#viewer").bounding_box()
+    page.locator("#viewer").focus()
+    page.keyboard.press("w")
+    page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    strip = page.locator("#light-strip")
+    strip.wait_for(state="visible")
+    assert int(strip.get_attribute("data-normals")) > 50
+    assert page.locator("#light-strip-cells canvas").count() == 8
+    page.keyboard.press("Escape")

@@ -41,7 +41,14 @@ def _whole_tablet(out: Path) -> tuple[Path, Path]:
     from worker.tiles.tablet import build_tablet_tiles
 
     paths, truths = write_gt_model_dirs(out / "faces", size=SIZE)
-    for p in paths:
+    for k, p in enumerate(paths):
+        # A quality map per face (as test_browser_scholar_whole.py's): fringe disagreement on
+        # the left half of the face's grid, none (NaN) on the right.
+        h = np.load(p / "height.npy")
+        (p / "quality").mkdir(exist_ok=True)
+        d = np.random.default_rng(k).normal(0.0, 2.0, h.shape).astype(np.float32)
+        d[:, h.shape[1] // 2 :] = np.nan
+        np.save(p / "quality" / "fringe_disagreement_um.npy", d)
         derive_assets(p)
     loaded = [load_model_dir(p) for p in paths]
     mesh = write_output_dir(out / "mesh", whole_tablet_model(loaded, truths))
@@ -252,3 +259,76 @@ def test_face_checkboxes_show_and_hide_the_streamed_faces(page, lib, tools):
         return h && h.part; }"""
     )
     assert hit in names, hit
+
+
+def test_quality_and_sections_of_the_streamed_tablet_are_the_single_meshs(page, lib, tools):
+    """Each face's quality map drawn on its tiles as on model.glb's face (the same picture),
+    and a section cut from each face's full-resolution heights (height.f32 by Range on the
+    streamed tablet, height.npy on model.glb): the same outline."""
+    shots, cuts = {}, {}
+    for which in ("mesh", "streamed"):
+        _show(page, lib, which)
+        page.locator("#mode").select_option("quality")
+        page.wait_for_function("() => window.hammurabi.viewer.model.assets.quality?.length")
+        assert page.locator("#notice").is_hidden(), page.locator("#notice").inner_text()
+        shots[which] = _top_edge_view(page, tools, "quality")
+        legend = page.locator("#legend").inner_text()
+        assert "fringe_disagreement_um" in legend, legend
+        cuts[which] = {"legend": legend}
+        # A section straight across the obverse's middle row, seen from the front.
+        page.evaluate("() => window.hammurabi.viewer.setView('obverse')")
+        _wait_streamed(page)
+        box = page.locator("#viewer").bounding_box()
+        y = box["y"] + box["height"] / 2
+        page.locator("#viewer").focus()
+        page.keyboard.press("x")
+        page.mouse.click(box["x"] + box["width"] / 2 - 150, y)
+        page.mouse.click(box["x"] + box["width"] / 2 + 150, y)
+        panel = page.locator("#section-panel")
+        panel.wait_for(state="visible")
+        cuts[which].update(
+            source=panel.get_attribute("data-source"),
+            width=float(panel.get_attribute("data-width-mm")),
+            depth=float(panel.get_attribute("data-depth-mm")),
+            outlines=page.locator("#section-readout").inner_text().split(" outline")[0],
+        )
+        if which == "streamed":
+            _save("whole-tablet-streamed-quality.png", shots[which])
+            folder = os.environ.get("HAMMURABI_SAVE_SCREENSHOTS")
+            if folder:
+                page.locator(".stage").screenshot(
+                    path=str(Path(folder) / "whole-tablet-streamed-section.png")
+                )
+        page.locator("#section-close").click()
+        page.keyboard.press("Escape")
+    on = _on_model(shots["mesh"]) & _on_model(shots["streamed"])
+    assert on.mean() > 0.2, on.mean()
+    diff = np.abs(shots["streamed"] - shots["mesh"]).mean(axis=-1)
+    assert np.mean(diff[on] > 0.1) < 0.05, np.mean(diff[on] > 0.1)
+    m, s = cuts["mesh"], cuts["streamed"]
+    assert m["legend"] == s["legend"], (m, s)  # one pooled range over the same faces
+    assert m["source"] == s["source"] == "heights", cuts
+    assert s["width"] == pytest.approx(m["width"], abs=0.05), cuts
+    assert s["depth"] == pytest.approx(m["depth"], abs=0.05), cuts
+
+
+def test_best_light_of_the_streamed_tablet_is_the_single_meshs(page, lib, tools):
+    """The best light for a region of the reverse: from the normals of the tile clicked on the
+    streamed tablet, of the face clicked on model.glb, each turned into the tablet frame by
+    the face's rotation: the same light."""
+    got = {}
+    for which in ("mesh", "streamed"):
+        _show(page, lib, which)
+        page.evaluate("() => window.hammurabi.viewer.setView('reverse')")
+        _wait_streamed(page)
+        box = page.locator("#viewer").bounding_box()
+        page.locator("#viewer").focus()
+        page.keyboard.press("w")
+        page.mouse.click(box["x"] + box["width"] / 2 + 40, box["y"] + box["height"] / 2 - 30)
+        strip = page.locator("#light-strip")
+        strip.wait_for(state="visible")
+        got[which] = [float(strip.get_attribute(f"data-{k}")) for k in ("azimuth", "polar")]
+        page.keyboard.press("Escape")
+    (az_m, po_m), (az_s, po_s) = got["mesh"], got["streamed"]
+    assert abs((az_s - az_m + 180) % 360 - 180) <= 2, got
+    assert abs(po_s - po_m) <= 2, got

@@ -187,6 +187,16 @@ def test_a_tiled_model_streams_relights_and_stays_in_budget(tiled_page, tiled, t
     # the curvature and accessibility maps are on the GPU (and counted) only in their modes
     assert gpu["curvature"] > gpu["natural"] and gpu["accessibility"] > gpu["natural"], gpu
     assert gpu["relief"] == gpu["natural"], gpu
+    # ... and while the lens draws them over another mode (counted as the lens' maps too)
+    page.evaluate(
+        """() => { const v = window.hammurabi.viewer; v.setShading({ mode: 'natural' });
+          v.setEnhance({ lens: { mode: 'curvature', x: 200, y: 200, radius: 80 } }); }"""
+    )
+    tools.render_pixels(page)
+    lens_bytes = streaming(page)["bytesUsed"]
+    page.evaluate("() => window.hammurabi.viewer.setEnhance({ lens: null })")
+    tools.render_pixels(page)
+    assert lens_bytes > streaming(page)["bytesUsed"] == gpu["natural"], (lens_bytes, gpu)
     names = list(shots)
     for i, a in enumerate(names):
         for b in names[i + 1 :]:
@@ -253,11 +263,11 @@ def test_profile_reads_only_the_rows_it_touches(tiled_page, tiled, tools):
     assert not errors, errors
 
 
-def test_section_reads_rows_and_best_light_says_it_waits_for_a_whole_mesh(tiled_page, tiled, tools):
+def test_section_reads_rows_and_best_light_reads_the_tile(tiled_page, tiled, tools):
     """A streamed face is cut from its full-resolution heights, the rows between the two ends
-    read by HTTP Range as a profile reads them (scholar.js); the best-light tool, which needs
-    one normal map in memory, says so when chosen and picks nothing. Its trust mode (no trust
-    map for tiles yet) is disabled, with the reason."""
+    read by HTTP Range as a profile reads them (scholar.js); the best light reads the region
+    from the normal map of the tile clicked (coarse or finest: the same light). A face without
+    trust.png has its trust mode disabled, with the reason."""
     page, errors = tiled_page
     page.evaluate("() => window.hammurabi.viewer.resetView()")
     wait_streamed(page)
@@ -284,13 +294,31 @@ def test_section_reads_rows_and_best_light_says_it_waits_for_a_whole_mesh(tiled_
     page.keyboard.press("u")
     assert page.locator("#viewer").get_attribute("data-mode") != "trust"
     assert "streamed" in page.locator("#readout").inner_text()
-    page.locator("#viewer").focus()
-    page.keyboard.press("w")
-    assert page.locator("#best-light").get_attribute("aria-pressed") == "false"
-    readout = page.locator("#readout").inner_text()
-    assert readout.startswith("Best light:") and "streamed" in readout, readout
-    page.mouse.click(*tools.screen_of(page, [wx, wy, 0.0]))
-    assert page.locator("#light-strip").is_hidden()
+    best = {}
+    for zoom in (1, 8):
+        zoom_to(page, wx, wy, zoom)
+        wait_streamed(page)
+        step = tile_under_centre(page)["pixel_step"]
+        page.locator("#viewer").focus()
+        page.keyboard.press("w")
+        assert page.locator("#best-light").get_attribute("aria-pressed") == "true"
+        page.mouse.click(*tools.screen_of(page, [wx, wy, 0.0]))
+        strip = page.locator("#light-strip")
+        strip.wait_for(state="visible")
+        assert page.locator("#light-strip-cells canvas").count() == 8
+        # A 3 mm circle of the tile's normals: π (3 mm / texel)² texels (read at most 192 on a
+        # side, scholar.js MAX_CROP_PX; less where the circle leaves the tile).
+        n = int(strip.get_attribute("data-normals"))
+        r_tex = min(3000 / (tiled.pixel_size_um * step), 96)
+        assert 0.25 * np.pi * r_tex**2 < n <= 1.1 * np.pi * r_tex**2 + 50, (zoom, step, n)
+        best[zoom] = float(strip.get_attribute("data-azimuth"))
+        light = page.evaluate("() => window.hammurabi.viewer.light")
+        assert abs(light["azimuthDeg"] - best[zoom]) < 0.01 and not light["follow"]
+        page.keyboard.press("Escape")  # the tool off, the strip closed
+        assert page.locator("#light-strip").is_hidden()
+    # Lighting across the same wedges (either side of them: modulo 180°).
+    diff = abs((best[1] - best[8] + 90) % 180 - 90)
+    assert diff <= 20, best
     assert not errors, errors
 
 

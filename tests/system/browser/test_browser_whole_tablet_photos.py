@@ -24,6 +24,7 @@ import pytest
 from PIL import Image
 
 TABLET = "P999003"  # the seeded tablet without models of its own
+server = sys.modules["hammurabi_browser_server"]  # loaded by conftest.py
 FACES = ["obverse", "reverse"]
 SIZE = (120, 96)
 AZIMUTHS = [0, 45, 90, 135, 180, 225, 270, 315]
@@ -77,9 +78,10 @@ def _gloss(d: Path) -> None:
     (d / "gloss.json").write_text(json.dumps({"strength_scale": 0.5, "exponent": 16.0}))
 
 
-def _whole_tablet(out: Path, *, gloss: bool) -> Path:
+def _whole_tablet(out: Path, *, gloss: bool, tiled: bool = False) -> Path:
     """The worker's whole-tablet files, with transforms.json and report.json as the
-    registration writes them (the true poses instead of the fitted ones)."""
+    registration writes them (the true poses instead of the fitted ones); ``tiled``: with
+    its tiles too (worker.tiles.tablet), so the page streams it."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "worker" / "register"))
     try:
         from synthetic import write_gt_model_dirs
@@ -116,7 +118,22 @@ def _whole_tablet(out: Path, *, gloss: bool) -> Path:
             },
         }
     ).encode()
-    return write_output_dir(out / "model", files)
+    model = write_output_dir(out / "model", files)
+    if tiled:
+        from worker.assets import derive_assets
+        from worker.tiles.tablet import build_tablet_tiles
+
+        for p in paths:
+            derive_assets(p)  # the tiles carry each face's curvature and accessibility
+
+        build_tablet_tiles(
+            model,
+            {
+                face_asset_dir(c.label): (Path(p), np.asarray(t, float))
+                for (c, _), p, t in zip(loaded, paths, truths, strict=True)
+            },
+        )
+    return model
 
 
 @pytest.fixture(scope="module")
@@ -126,6 +143,9 @@ def photo_tablet(tmp_path_factory, server_module):
     try:
         lib.models["matte"] = lib.add_tablet_model(TABLET, _whole_tablet(tmp / "m", gloss=False))
         lib.models["glossy"] = lib.add_tablet_model(TABLET, _whole_tablet(tmp / "g", gloss=True))
+        lib.models["streamed"] = lib.add_tablet_model(
+            TABLET, _whole_tablet(tmp / "s", gloss=True, tiled=True)
+        )
         yield lib
     finally:
         lib.stop()
@@ -235,6 +255,7 @@ def _face_brightness(page, tools, view: str) -> float:
         view,
     )
     tools.idle(page)
+    server.settle_tiles(page)  # a streamed tablet: its tiles in, then drawn
     px = tools.render_pixels(page, 240, 160)
     grey = px.mean(axis=-1)
     on = grey > 0.08
@@ -261,3 +282,24 @@ def test_each_face_shines_with_its_own_measured_gloss(page, photo_tablet, tools)
     # The light from the camera: the glossy obverse shines, its reverse (no gloss) does not.
     assert got["glossy"]["obverse"] > got["matte"]["obverse"] + 0.02, got
     assert got["glossy"]["reverse"] == pytest.approx(got["matte"]["reverse"], abs=0.01), got
+
+
+def test_the_streamed_tablet_has_the_photographs_and_gloss_of_its_faces(page, photo_tablet, tools):
+    """The same tablet streamed: the photograph of the face in view, and each face's gloss
+    from its tiles (`dh_maps.gloss`) shining as model.glb's faces do."""
+    lib = photo_tablet
+    _open(page, lib, "streamed")
+    assert page.evaluate("() => window.hammurabi.viewer.streaming() !== null")
+    page.wait_for_function("() => !document.getElementById('photo-controls').hidden", timeout=20000)
+    page.check("#photo-show")
+    for view in FACES:
+        _view(page, view)
+        server.settle_tiles(page)
+        page.evaluate("() => window.hammurabi.viewer.setLight({ azimuthDeg: 33 })")  # refresh
+        assert _caption(page).startswith(f"Face sim-0-{view}:"), (view, _caption(page))
+    page.uncheck("#photo-show")
+    streamed = {v: _face_brightness(page, tools, v) for v in FACES}
+    _open(page, lib, "glossy")
+    mesh = {v: _face_brightness(page, tools, v) for v in FACES}
+    for v in FACES:
+        assert streamed[v] == pytest.approx(mesh[v], abs=0.02), (streamed, mesh)
