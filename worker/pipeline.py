@@ -210,6 +210,11 @@ def _model(
         quality["walls"] = (mask & walls_flag).astype(np.uint8)
     report = _report(meas, mask, quality, on_mask.figures, fusion=fusion, surface=used_surface)
     report["refinements"] = refinements
+    if "photometric_consensus" in quality:
+        report["refinements"]["light_set_consensus"] = {
+            "pixels": int(np.count_nonzero(quality["photometric_consensus"])),
+            "map": "quality/photometric_consensus.npy",
+        }
     report["quality"]["camera_blur_sigma_px"] = blur_px
     report["quality"]["camera_blur_source"] = blur_source
     report["quality"]["reference_modulation_by_period"] = _reference_modulation(meas)
@@ -696,6 +701,9 @@ def _mask_products(meas: Measurements, mask: np.ndarray) -> _MaskProducts:
             quality["photometric_outliers"] = np.where(mask, meas.photometric_outliers, 0).astype(
                 np.int16
             )
+        if meas.photometric_consensus is not None:
+            # Where the normal was fitted from the neighbourhood's light set.
+            quality["photometric_consensus"] = (mask & meas.photometric_consensus).astype(np.uint8)
         if meas.fringe_height_um is None:
             # Photographs alone: the measured normals themselves, the product that
             # photometric stereo is judged by (normals.npy holds the integrated surface's).

@@ -133,6 +133,12 @@ def test_the_manifest_psf_is_used_and_reported(tmp_path):
     entry = report["refinements"]["guard"]
     assert int((guard == 1).sum()) == entry["pixels_beyond_fringe_bound"]
     assert int((guard == 2).sum()) == entry["pixels_outside_neighbourhood"]
+    # The neighbourhood light set: its map and the report's count agree, and it acted
+    # somewhere but not everywhere (it stands down where the normals turn).
+    consensus = np.load(tmp_path / "m" / "quality" / "photometric_consensus.npy")
+    count = report["refinements"]["light_set_consensus"]["pixels"]
+    assert consensus.dtype == np.uint8 and int(consensus.sum()) == count
+    assert 0 < count < report["quality"]["tablet_pixels"]
     # Cliff pixels whose side nothing told are NaN, off the mask, flagged all the same.
     assert int((guard == 3).sum()) == entry["cliff_pixels_side_unknown"]
     height = np.load(tmp_path / "m" / "height.npy")

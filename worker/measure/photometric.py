@@ -151,6 +151,7 @@ def measure_photometric(bundle, photo, meas, rho_ref, *, stacks=None, workers: i
     meas.residual = res.residual
     meas.lights_used = res.lights_used
     meas.photometric_outliers = res.outliers
+    meas.photometric_consensus = res.consensus
     meas.photometric_polar_deg = float(np.median(polar))
     meas.used["photometric_azimuths_deg"] = sorted({angle_key(a) for a in az})
 

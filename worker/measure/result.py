@@ -40,6 +40,8 @@ class Measurements:
     residual: np.ndarray | None = None
     lights_used: np.ndarray | None = None
     photometric_outliers: np.ndarray | None = None  # lit samples the fit left out
+    # Pixels fitted from their neighbourhood's light set (photometric_fit.consensus_refit).
+    photometric_consensus: np.ndarray | None = None
     # Per pixel, a high quantile of the photometric shading over the lights
     # (`recon.ground_mask.stack_peak`): the evidence of the dark-ground mask, computed for
     # bundles without fringe heights only.

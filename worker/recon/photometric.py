@@ -60,6 +60,8 @@ class PhotometricResult:
         noise floor (3σ of the shading noise) in front of its terminator (n·l above
         ``shadow_fraction``): highlights, interreflections, cast shadows' penumbrae.
     noise_sigma : float, σ of the shading noise used for the tolerances (given or estimated).
+    consensus : (H, W) bool, pixels fitted from their neighbourhood's light set
+        (``consensus_window_px``); None when that step is off.
     """
 
     normals: np.ndarray
@@ -68,6 +70,7 @@ class PhotometricResult:
     lights_used: np.ndarray
     noise_sigma: float = 0.0
     outliers: np.ndarray | None = None
+    consensus: np.ndarray | None = None
 
 
 def light_directions(azimuth_deg, polar_deg) -> np.ndarray:
@@ -295,7 +298,7 @@ def photometric_stereo(
 
     def resolve(start: int) -> None:
         idx, s, valid, _, model = chunk_of(start)
-        inl, b, ok = consensus_refit(
+        inl, b, ok, consensus_taken[idx] = consensus_refit(
             model, inl_all[:, idx], b_all[idx], ok_all[idx], consensus[:, idx]
         )
         finish(idx, s, valid, inl, b, ok)
@@ -304,6 +307,7 @@ def photometric_stereo(
         inl_all = np.zeros((k, h * w), dtype=bool)
         b_all = np.zeros((h * w, 3))
         ok_all = np.zeros(h * w, dtype=bool)
+        consensus_taken = np.zeros(h * w, dtype=bool)
 
     # Pixels are independent: chunks run in threads (numpy releases the GIL on the arrays).
     run_blocks(solve, range(0, pix.size, chunk), workers=workers)
@@ -327,4 +331,5 @@ def photometric_stereo(
         lights_used=used.reshape(h, w),
         noise_sigma=float(noise_sigma or 0.0),
         outliers=rejected.reshape(h, w),
+        consensus=consensus_taken.reshape(h, w) if consensus_window_px else None,
     )

@@ -751,7 +751,8 @@ def coherent_normals(
 
 def consensus_refit(model, inl, b, ok, consensus):
     """Fit each pixel again from its neighbourhood's light set ``consensus`` (K, n) bool
-    (:func:`consensus_light_sets`) where that set explains its samples. Returns (inl, b, ok).
+    (:func:`consensus_light_sets`) where that set explains its samples. Returns (inl, b, ok,
+    taken), ``taken`` (n,) bool the pixels fitted from the neighbourhood's set.
 
     The robust fit chooses each pixel's inliers on its own; neighbouring pixels then use
     different light subsets, and the Lambertian departures within the tolerance (a lobe's
@@ -769,7 +770,7 @@ def consensus_refit(model, inl, b, ok, consensus):
     # the paper scan about a third: the pass cost 0.6 CPU s over every pixel).
     cols = np.flatnonzero(ok & np.any(use != inl, axis=0))
     if cols.size == 0:
-        return inl, b, ok
+        return inl, b, ok, np.zeros(ok.shape, dtype=bool)
     sub, use_c = model.sub(cols), _cols(use, cols)
     b_c, ok_c = _fit(sub.s, use_c, model.lights32, model.ll6)
     r, tol, front = sub.residual(b_c)
@@ -780,4 +781,4 @@ def consensus_refit(model, inl, b, ok, consensus):
     b = np.where(take[:, None], 0, b)
     b[taken] = b_c[ok_c & ~np.any(bad, axis=0)]
     inl = _select(take[None, :], use, inl)
-    return inl, b, ok
+    return inl, b, ok, take
