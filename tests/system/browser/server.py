@@ -416,3 +416,18 @@ def settle_tiles(page) -> dict | None:
     the renderer's update) no tile is queued, downloading or parsing, twice in a row; the
     viewer's streaming figures then (None for a single-mesh model)."""
     return page.evaluate(_SETTLE_JS)
+
+
+def cut_section(page, half_width_px: float):
+    """Draw a section straight across the viewer's middle row, from half_width_px left of
+    its centre to as far right (the section tool's key, then two clicks); returns the
+    section panel once it is shown."""
+    box = page.locator("#viewer").bounding_box()
+    x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.locator("#viewer").focus()
+    page.keyboard.press("x")
+    page.mouse.click(x - half_width_px, y)
+    page.mouse.click(x + half_width_px, y)
+    panel = page.locator("#section-panel")
+    panel.wait_for(state="visible")
+    return panel

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+server = sys.modules["hammurabi_browser_server"]  # loaded by conftest.py
 TABLET = "P999002"
 SIZE = (160, 128)  # 214 µm pixels: the simulator makes six faces in a few seconds
 SHOTS = os.environ.get("HAMMURABI_SAVE_SCREENSHOTS")
@@ -205,15 +206,8 @@ def test_a_section_of_the_whole_tablet_is_cut_from_each_faces_heights(page, whol
     _open(page, whole, "whole", tools)
     page.locator("#mode").select_option("clay")
     tools.settle(page)
-    box = page.locator("#viewer").bounding_box()
     model_box = page.evaluate("() => window.hammurabi.viewer.model.box")
-    y = box["y"] + box["height"] / 2
-    page.locator("#viewer").focus()
-    page.keyboard.press("x")
-    page.mouse.click(box["x"] + box["width"] / 2 - 60, y)
-    page.mouse.click(box["x"] + box["width"] / 2 + 60, y)
-    panel = page.locator("#section-panel")
-    panel.wait_for(state="visible")
+    panel = server.cut_section(page, 60)
     assert panel.get_attribute("data-source") == "heights"
     assert "full-resolution heights" in page.locator("#section-readout").inner_text()
     width = float(panel.get_attribute("data-width-mm"))

@@ -278,14 +278,7 @@ def test_quality_and_sections_of_the_streamed_tablet_are_the_single_meshs(page, 
         # A section straight across the obverse's middle row, seen from the front.
         page.evaluate("() => window.hammurabi.viewer.setView('obverse')")
         _wait_streamed(page)
-        box = page.locator("#viewer").bounding_box()
-        y = box["y"] + box["height"] / 2
-        page.locator("#viewer").focus()
-        page.keyboard.press("x")
-        page.mouse.click(box["x"] + box["width"] / 2 - 150, y)
-        page.mouse.click(box["x"] + box["width"] / 2 + 150, y)
-        panel = page.locator("#section-panel")
-        panel.wait_for(state="visible")
+        panel = server.cut_section(page, 150)
         cuts[which].update(
             source=panel.get_attribute("data-source"),
             width=float(panel.get_attribute("data-width-mm")),

@@ -266,6 +266,16 @@ def tablet_trust(library, tmp_path_factory):
     return SimpleNamespace(id=model_id, heights=heights, s_mm=s_mm, turn=turn)
 
 
+def _open_tablet_in_mode(page, library, t, mode: str, loaded: str) -> None:
+    """Open the streamed whole tablet `t` and switch to `mode` once the model's `loaded`
+    expression (on window.hammurabi.viewer.model) is true."""
+    page.goto(f"{library.url}/tablet.html?id={library.tablets['P999003']}#m={t.id}")
+    page.wait_for_function("() => document.getElementById('viewer').dataset.loaded", timeout=60000)
+    assert not page.locator(f"#mode option[value='{mode}']").is_disabled()
+    page.select_option("#mode", mode)
+    page.wait_for_function(f"() => window.hammurabi.viewer.model.{loaded}")
+
+
 def test_trust_on_a_streamed_whole_tablet_uses_each_faces_map(
     browser, library, tablet_trust, tools
 ):
@@ -275,14 +285,7 @@ def test_trust_on_a_streamed_whole_tablet_uses_each_faces_map(
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
     try:
-        tablet_id = library.tablets["P999003"]
-        page.goto(f"{library.url}/tablet.html?id={tablet_id}#m={t.id}")
-        page.wait_for_function(
-            "() => document.getElementById('viewer').dataset.loaded", timeout=60000
-        )
-        assert not page.locator("#mode option[value='trust']").is_disabled()
-        page.select_option("#mode", "trust")
-        page.wait_for_function("() => window.hammurabi.viewer.model.assets.trust")
+        _open_tablet_in_mode(page, library, t, "trust", "assets.trust")
         for k, (view, to_tablet) in enumerate((("obverse", np.eye(4)), ("reverse", t.turn))):
             page.evaluate("v => window.hammurabi.viewer.setView(v)", view)
             settle_tiles(page)
@@ -338,13 +341,7 @@ def test_quality_pm_profile_and_section_on_a_streamed_whole_tablet(
     try:
         login = {"email": server.STAFF_EMAIL, "password": server.STAFF_PASSWORD}
         assert page.request.post(f"{library.url}/api/v1/auth/login", data=login).ok
-        page.goto(f"{library.url}/tablet.html?id={library.tablets['P999003']}#m={t.id}")
-        page.wait_for_function(
-            "() => document.getElementById('viewer').dataset.loaded", timeout=60000
-        )
-        assert not page.locator("#mode option[value='quality']").is_disabled()
-        page.select_option("#mode", "quality")
-        page.wait_for_function("() => window.hammurabi.viewer.model.assets.quality?.length")
+        _open_tablet_in_mode(page, library, t, "quality", "assets.quality?.length")
         for k, view in enumerate(("obverse", "reverse")):
             page.evaluate("v => window.hammurabi.viewer.setView(v)", view)
             settle_tiles(page)
