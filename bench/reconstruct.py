@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/reconstruct.py [--preset paper] [--seeds 0,1,2] [--noise default]
                                           [--size WxH] [--work DIR] [--no-speed]
-                                          [--no-accuracy] [--repeat 3]
+                                          [--no-accuracy] [--no-cli | --cli-only] [--repeat 3]
 
 For each seed: simulate a scan (worker.simulate; kept in --work to be reused), then
 1. decode: the time to decode every image of the bundle to radiance (the floor), in a child
@@ -21,8 +21,12 @@ For each seed: simulate a scan (worker.simulate; kept in --work to be reused), t
    split into its rim and bottom parts (signed means, median offset removed: + is too
    high, so a bottom at +2 and a rim at 0 is a wedge 2 µm too shallow).
 With several seeds, a summary table (mean and worst over the seeds) closes the output.
-Prints markdown tables (docs/benchmarks.md keeps the last run). Model directories of the
-speed runs go to a temporary folder, never into --work (which may be a shared cache).
+Prints markdown tables (docs/benchmarks.md keeps the last run), each as soon as its runs end
+(flushed: the CLI's figure comes last, minutes after the in-process table on a loaded
+machine). Peak RSS is each process's own ru_maxrss (getrusage in the in-process child, os.wait4
+for the CLI and decode processes): every run's figure is printed, the table gives the largest.
+Model directories of the speed runs go to a temporary folder, never into --work (which may be
+a shared cache).
 """
 
 from __future__ import annotations
@@ -166,13 +170,19 @@ def _print_cli_speed(decodes: list[dict], runs: list[dict]) -> None:
     med = np.median
     wall, dec = med([r["wall"] for r in runs]), med([d["wall"] for d in decodes])
     cpu, dec_cpu = med([r["cpu"] for r in runs]), med([d["cpu"] for d in decodes])
-    rss = max(r["maxrss_mib"] for r in runs)
-    each = ", ".join(f"{r['wall']:.2f}/{d['wall']:.2f}" for r, d in zip(runs, decodes, strict=True))
+    rss, dec_rss = max(r["maxrss_mib"] for r in runs), max(d["maxrss_mib"] for d in decodes)
+    each = ", ".join(
+        f"{r['wall']:.2f}/{d['wall']:.2f} s, {r['cpu']:.1f}/{d['cpu']:.1f} CPU s, "
+        f"{r['maxrss_mib']:.0f}/{d['maxrss_mib']:.0f} MiB"
+        for r, d in zip(runs, decodes, strict=True)
+    )
     print(
         f"\nCLI, process start to exit (`python -m worker.reconstruct … --quiet` against a "
         f"process that decodes every image): {wall:.2f} s / {dec:.2f} s = {wall / dec:.2f} "
         f"(wall, medians); CPU seconds {cpu:.1f} / {dec_cpu:.1f} = {cpu / dec_cpu:.2f}; "
-        f"peak RSS {rss:.0f} MiB\nruns (CLI / decode s): {each}"
+        f"peak RSS {rss:.0f} MiB (decode {dec_rss:.0f} MiB)\n"
+        f"runs (CLI / decode): {each}",
+        flush=True,
     )
 
 
@@ -287,12 +297,14 @@ def _print_speed(seed: int, decodes: list, runs: list[dict]) -> None:
     cpu = med([r["cpu"] for r in runs])
     rss = max(r["maxrss_mib"] for r in runs)
     each = ", ".join(
-        f"{r['timings']['total']:.2f}/{d[0]:.2f}" for r, d in zip(runs, decodes, strict=True)
+        f"{r['timings']['total']:.2f}/{d[0]:.2f} s, {r['maxrss_mib']:.0f} MiB"
+        for r, d in zip(runs, decodes, strict=True)
     )
     print(
         f"\ntotal / decode = {total / dec:.2f} (wall, medians); CPU seconds: pipeline {cpu:.1f}, "
         f"decode {dec_cpu:.1f} (ratio {cpu / dec_cpu:.2f}); peak RSS {rss:.0f} MiB"
-        f"\nruns (total / decode s): {each}"
+        f"\nruns (total / decode, peak RSS of the run): {each}",
+        flush=True,
     )
 
 
@@ -309,6 +321,11 @@ def main(argv=None) -> int:
         "--no-cli", action="store_true", help="no CLI runs (process start to exit) in the speed"
     )
     p.add_argument(
+        "--cli-only",
+        action="store_true",
+        help="speed: the CLI and decode processes only (issue 15's figure), no in-process runs",
+    )
+    p.add_argument(
         "--repeat", type=int, default=3, help="decode and pipeline runs for the speed table"
     )
     args = p.parse_args(argv)
@@ -321,8 +338,9 @@ def main(argv=None) -> int:
     for seed in seeds:
         sim = simulate(work, seed=seed, preset=args.preset, noise=args.noise, size=size)
         if not args.no_speed:
-            _print_speed(seed, *speed(sim / "bundle", args.repeat))
-            if not args.no_cli:
+            if not args.cli_only:
+                _print_speed(seed, *speed(sim / "bundle", args.repeat))
+            if not args.no_cli or args.cli_only:
                 _print_cli_speed(*cli_speed(sim / "bundle", args.repeat))
         if args.no_accuracy:
             continue
