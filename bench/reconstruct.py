@@ -2,13 +2,13 @@
 
     .venv/bin/python bench/reconstruct.py [--preset paper] [--seeds 0,1,2] [--noise default]
                                           [--size WxH] [--work DIR] [--no-speed]
-                                          [--no-accuracy] [--repeat 3]
+                                          [--no-accuracy] [--no-cli | --cli-only] [--repeat 3]
 
 For each seed: simulate a scan (worker.simulate; kept in --work to be reused), then
 1. decode: the time to decode every image of the bundle to radiance (the floor), in a child
    process;
 2. the whole pipeline (`reconstruct_bundle`, default fusion) in a child process: time per
-   stage, total, and the child's peak resident memory (getrusage ru_maxrss);
+   stage, total, and the child's peak resident memory (VmHWM, see below);
    both `--repeat` times, alternating which runs first; the table gives medians;
    unless --no-cli, also issue 15's own figure: the CLI `python -m worker.reconstruct
    BUNDLE OUT --quiet` from process start to exit (imports and the model directory's
@@ -21,8 +21,17 @@ For each seed: simulate a scan (worker.simulate; kept in --work to be reused), t
    split into its rim and bottom parts (signed means, median offset removed: + is too
    high, so a bottom at +2 and a rim at 0 is a wedge 2 µm too shallow).
 With several seeds, a summary table (mean and worst over the seeds) closes the output.
-Prints markdown tables (docs/benchmarks.md keeps the last run). Model directories of the
-speed runs go to a temporary folder, never into --work (which may be a shared cache).
+Prints markdown tables (docs/benchmarks.md keeps the last run), each as soon as its runs end
+(flushed: the CLI's figure comes last, minutes after the in-process table on a loaded
+machine). Every run's figures are printed; the tables give the largest peak RSS. A peak RSS
+is that of the measured program alone: Linux hands a child the parent's peak as its own
+ru_maxrss when it execs (the old address space's high-water mark is kept; with vfork that is
+the parent's, so a bench that simulated its scan gave every child the simulation's 1.8 GB).
+So the in-process children read their VmHWM (the peak of the address space since exec), and
+the CLI and decode processes are started by a small launcher process (`_LAUNCH`) whose own
+peak, ~15 MB, is all they inherit; it times them by os.wait4.
+Model directories of the speed runs go to a temporary folder, never into --work (which may be
+a shared cache).
 """
 
 from __future__ import annotations
@@ -39,7 +48,6 @@ sys.path.insert(0, str(_HERE.parent))
 import argparse  # noqa: E402
 import json  # noqa: E402
 import multiprocessing as mp  # noqa: E402
-import os  # noqa: E402
 import resource  # noqa: E402
 import subprocess  # noqa: E402
 import tempfile  # noqa: E402
@@ -75,6 +83,16 @@ def simulate(work: Path, *, seed: int, preset: str, noise: str, size) -> Path:
     return out
 
 
+def _peak_rss_mib() -> float:
+    """Peak resident memory of this process's own address space (VmHWM), MiB; not
+    ru_maxrss, which also holds the parent's peak when this process was started (Linux)."""
+    try:
+        with open("/proc/self/status") as f:
+            return next(int(ln.split()[1]) for ln in f if ln.startswith("VmHWM:")) / 1024
+    except (OSError, StopIteration):  # not Linux: ru_maxrss (KiB), an upper bound
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def _decode_child(bundle_path, queue):
     with open_bundle(bundle_path) as b:
         frames = [f for f in b.frames if f.kind != "dark"]
@@ -94,9 +112,8 @@ def _child(bundle_path, out_dir, queue):
     t0, c0 = time.perf_counter(), time.process_time()
     report = reconstruct_bundle(bundle_path, out_dir)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    rss_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     queue.put(
-        {"timings": report["timings_s"], "wall": wall, "cpu": cpu, "maxrss_mib": rss_kib / 1024}
+        {"timings": report["timings_s"], "wall": wall, "cpu": cpu, "maxrss_mib": _peak_rss_mib()}
     )
 
 
@@ -126,24 +143,32 @@ with open_bundle(sys.argv[1]) as b:
 """
 
 
+# Starts the command of its arguments and prints its wall, CPU (user + system) seconds and
+# peak RSS, start to exit (os.wait4: that child's own figures). A process of its own so that
+# the command inherits its small peak RSS, not the bench's (see the module's docstring).
+_LAUNCH = """
+import json, os, subprocess, sys, time
+t0 = time.perf_counter()
+proc = subprocess.Popen(sys.argv[1:], stdout=subprocess.DEVNULL)
+_, status, usage = os.wait4(proc.pid, 0)
+wall = time.perf_counter() - t0
+print(json.dumps({"wall": wall, "cpu": usage.ru_utime + usage.ru_stime,
+                  "maxrss_mib": usage.ru_maxrss / 1024,
+                  "exit": os.waitstatus_to_exitcode(status)}))
+"""
+
+
 def _process_run(args: list[str]) -> dict:
-    """Wall, CPU (user + system) seconds and peak RSS (MiB) of one child process, start to
-    exit (os.wait4: that child's own figures, not the sum over every child so far)."""
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(
-        args, cwd=_HERE.parent, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    """Wall, CPU (user + system) seconds and peak RSS (MiB) of one process, start to exit."""
+    done = subprocess.run(
+        [sys.executable, "-c", _LAUNCH, *args], cwd=_HERE.parent, capture_output=True
     )
-    err = proc.stderr.read()
-    _, status, usage = os.wait4(proc.pid, 0)
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    wall = time.perf_counter() - t0
-    if proc.returncode != 0:
-        raise RuntimeError(f"{args[1:3]} exited {proc.returncode}: {err.decode()[-2000:]}")
-    return {
-        "wall": wall,
-        "cpu": usage.ru_utime + usage.ru_stime,
-        "maxrss_mib": usage.ru_maxrss / 1024,
-    }
+    if done.returncode != 0:
+        raise RuntimeError(f"launcher exited {done.returncode}: {done.stderr.decode()[-2000:]}")
+    run = json.loads(done.stdout)
+    if run.pop("exit") != 0:
+        raise RuntimeError(f"{args[1:3]} failed: {done.stderr.decode()[-2000:]}")
+    return run
 
 
 def cli_speed(bundle_path: Path, repeat: int) -> tuple[list[dict], list[dict]]:
@@ -166,13 +191,19 @@ def _print_cli_speed(decodes: list[dict], runs: list[dict]) -> None:
     med = np.median
     wall, dec = med([r["wall"] for r in runs]), med([d["wall"] for d in decodes])
     cpu, dec_cpu = med([r["cpu"] for r in runs]), med([d["cpu"] for d in decodes])
-    rss = max(r["maxrss_mib"] for r in runs)
-    each = ", ".join(f"{r['wall']:.2f}/{d['wall']:.2f}" for r, d in zip(runs, decodes, strict=True))
+    rss, dec_rss = max(r["maxrss_mib"] for r in runs), max(d["maxrss_mib"] for d in decodes)
+    each = ", ".join(
+        f"{r['wall']:.2f}/{d['wall']:.2f} s, {r['cpu']:.1f}/{d['cpu']:.1f} CPU s, "
+        f"{r['maxrss_mib']:.0f}/{d['maxrss_mib']:.0f} MiB"
+        for r, d in zip(runs, decodes, strict=True)
+    )
     print(
         f"\nCLI, process start to exit (`python -m worker.reconstruct … --quiet` against a "
         f"process that decodes every image): {wall:.2f} s / {dec:.2f} s = {wall / dec:.2f} "
         f"(wall, medians); CPU seconds {cpu:.1f} / {dec_cpu:.1f} = {cpu / dec_cpu:.2f}; "
-        f"peak RSS {rss:.0f} MiB\nruns (CLI / decode s): {each}"
+        f"peak RSS {rss:.0f} MiB (decode {dec_rss:.0f} MiB)\n"
+        f"runs (CLI / decode): {each}",
+        flush=True,
     )
 
 
@@ -287,12 +318,14 @@ def _print_speed(seed: int, decodes: list, runs: list[dict]) -> None:
     cpu = med([r["cpu"] for r in runs])
     rss = max(r["maxrss_mib"] for r in runs)
     each = ", ".join(
-        f"{r['timings']['total']:.2f}/{d[0]:.2f}" for r, d in zip(runs, decodes, strict=True)
+        f"{r['timings']['total']:.2f}/{d[0]:.2f} s, {r['maxrss_mib']:.0f} MiB"
+        for r, d in zip(runs, decodes, strict=True)
     )
     print(
         f"\ntotal / decode = {total / dec:.2f} (wall, medians); CPU seconds: pipeline {cpu:.1f}, "
         f"decode {dec_cpu:.1f} (ratio {cpu / dec_cpu:.2f}); peak RSS {rss:.0f} MiB"
-        f"\nruns (total / decode s): {each}"
+        f"\nruns (total / decode, peak RSS of the run): {each}",
+        flush=True,
     )
 
 
@@ -309,6 +342,11 @@ def main(argv=None) -> int:
         "--no-cli", action="store_true", help="no CLI runs (process start to exit) in the speed"
     )
     p.add_argument(
+        "--cli-only",
+        action="store_true",
+        help="speed: the CLI and decode processes only (issue 15's figure), no in-process runs",
+    )
+    p.add_argument(
         "--repeat", type=int, default=3, help="decode and pipeline runs for the speed table"
     )
     args = p.parse_args(argv)
@@ -321,8 +359,9 @@ def main(argv=None) -> int:
     for seed in seeds:
         sim = simulate(work, seed=seed, preset=args.preset, noise=args.noise, size=size)
         if not args.no_speed:
-            _print_speed(seed, *speed(sim / "bundle", args.repeat))
-            if not args.no_cli:
+            if not args.cli_only:
+                _print_speed(seed, *speed(sim / "bundle", args.repeat))
+            if not args.no_cli or args.cli_only:
                 _print_cli_speed(*cli_speed(sim / "bundle", args.repeat))
         if args.no_accuracy:
             continue
