@@ -109,3 +109,25 @@ export function installFacingError(tiles, { floor = FACING_FLOOR } = {}) {
     target.error *= facingFactor(n, view, floor);
   };
 }
+
+/**
+ * Cosine above which a whole tablet's face is drawn: its outward axis may turn up to 120° from
+ * the direction toward the camera. A face turned further away lies behind the faces toward
+ * the camera (a tablet is near convex) and is not drawn: from the obverse the reverse
+ * (as many triangles as the obverse) is skipped, and SwiftShader's cost of a frame grows with
+ * its triangles, not only its pixels (docs/benchmarks.md, "Streaming speed, session 8").
+ */
+export const AWAY_COS = -0.5;
+
+/**
+ * Whether a whole tablet's face turns away from the camera.
+ * @param {ArrayLike<number>} rotation the face's scan → world rotation, column-major 3×3 (a
+ *   scan looks along its +z at a surface facing −z: the face's outward axis is −(third column))
+ * @param {ArrayLike<number>} towardCamera unit vector from the tablet toward the camera
+ * @param {number} [minCos]
+ */
+export function facesAway(rotation, towardCamera, minCos = AWAY_COS) {
+  const r = rotation;
+  const c = -(r[6] * towardCamera[0] + r[7] * towardCamera[1] + r[8] * towardCamera[2]);
+  return c < minCos;
+}

@@ -25,7 +25,8 @@ import { classifyAssets, disposeTexture, faceAssetPrefix, fetchBytes, loadQualit
 import { createHeightRows } from './heightRows.js';
 import { applyPartShading, createPartMaterial } from './material.js';
 import { bilinearHeight } from './profile.js';
-import { installFacingError } from './tileFacing.js';
+import { facesAway, installFacingError } from './tileFacing.js';
+import { installCursorPriority } from './tileFocus.js';
 import { mergeTrustMeta } from './trust.js';
 import { runQueuesPromptly } from './tileQueues.js';
 
@@ -252,6 +253,7 @@ export async function openTiledModel({
   const perScene = new WeakMap(); // scene → {textures, materials}
   let shading = null;
   const hiddenFaces = new Set(); // a whole tablet's faces not drawn (the page's checkboxes)
+  const awayFaces = new Set(); // and those turned away from the camera (tileFacing.js facesAway)
   // Maps of a whole face (not tiled): its trust map {texture} by face name ('' for a face
   // model), one shared texture per face (loaded once, tiledAssets), bound to its every tile.
   let trustByFace = new Map();
@@ -298,7 +300,7 @@ export async function openTiledModel({
           accessibility: maps.accessibility ?? null,
           trust: faceUv ? (trustByFace.get(m.userData.faceName ?? '') ?? null) : null,
         };
-        m.visible = !hiddenFaces.has(m.userData.faceName);
+        m.visible = !hiddenFaces.has(m.userData.faceName) && !awayFaces.has(m.userData.faceName);
         if (shading) applyPartShading(m, m.userData.face, shading, false);
         obj.material = m;
         materials.add(m);
@@ -320,6 +322,8 @@ export async function openTiledModel({
   };
   tiles.registerPlugin(relight);
   installFacingError(tiles); // edge-on tiles need less detail (tileFacing.js)
+  const cursor = installCursorPriority(tiles); // tiles under the cursor load first (tileFocus.js)
+  const size = new THREE.Vector2();
 
   tiles.addEventListener('dispose-model', ({ scene }) => {
     scene.traverse((obj) => {
@@ -384,6 +388,7 @@ export async function openTiledModel({
   const heights = kind === 'face' && index.height_raw ? streamedHeights(index, indexUrl) : null;
   let cameraInUse = null;
   let disposed = false;
+  let fullTarget = tiles.errorTarget; // the renderer's target at full resolution (describeTile)
 
   /** The LRU's bytes of every loaded tile again (0.5.3's recalculateBytesUsed() iterates its
    * cache Map's values, not its tiles, and so changes nothing). */
@@ -391,6 +396,31 @@ export async function openTiledModel({
     for (const tile of tiles.lruCache.itemSet.keys()) {
       if (tile.engineData?.scene) tiles.lruCache.setMemoryUsage(tile, tiles.getBytesUsed(tile));
     }
+  }
+
+  /** A tile's material is drawn unless its face is hidden or (a whole tablet) turned away. */
+  function applyVisibility() {
+    for (const m of materials) m.visible = !hiddenFaces.has(m.userData.faceName) && !awayFaces.has(m.userData.faceName);
+  }
+
+  const toCamera = new THREE.Vector3();
+  const towardCamera = [0, 0, 1];
+  /** The faces turned away from `camera` now (a whole tablet's; a face model has one side). */
+  function updateAwayFaces(camera) {
+    if (kind !== 'tablet') return;
+    camera.getWorldDirection(toCamera).negate(); // the view axis: a perspective camera's too
+    toCamera.toArray(towardCamera);
+    let changed = false;
+    for (const m of materials) {
+      const face = m.userData.faceName;
+      const away = facesAway(m.uniforms.uObjectToWorld.value.elements, towardCamera);
+      if (away !== awayFaces.has(face)) {
+        if (away) awayFaces.add(face);
+        else awayFaces.delete(face);
+        changed = true;
+      }
+    }
+    if (changed) applyVisibility();
   }
 
   function curvatureLayers(texture) {
@@ -418,7 +448,7 @@ export async function openTiledModel({
     setHiddenFaces(names) {
       hiddenFaces.clear();
       for (const n of names ?? []) hiddenFaces.add(n);
-      for (const m of materials) m.visible = !hiddenFaces.has(m.userData.faceName);
+      applyVisibility();
       invalidate();
     },
     /** The face (of a whole tablet) a picked object belongs to, or null. */
@@ -434,8 +464,16 @@ export async function openTiledModel({
     radius: sphere.radius || 1,
     /** Full-resolution heights (height.f32 by HTTP Range), or null: {reader, pixelSizeUm, onSurface}. */
     heights,
-    /** Call before each frame: culls, picks levels by screen-space error, queues loads. */
-    update(camera, renderer) {
+    /**
+     * Call before each frame: culls, picks levels by screen-space error, queues loads.
+     * @param {THREE.Camera} camera
+     * @param {THREE.WebGLRenderer} renderer
+     * @param {{focus?: {x: number, y: number} | null, detailScale?: number}} [options]
+     *   `focus`: the cursor (CSS px from the canvas' top left): tiles nearest it load first;
+     *   `detailScale` (0, 1]: the frame's pixel ratio scale (adaptive resolution while the
+     *   camera turns): levels are chosen for the pixels drawn, coarser by 1/scale
+     */
+    update(camera, renderer, { focus = null, detailScale = 1 } = {}) {
       if (disposed) return;
       if (cameraInUse !== camera) {
         if (cameraInUse) tiles.deleteCamera(cameraInUse);
@@ -449,8 +487,16 @@ export async function openTiledModel({
       // here) but geometric errors in its group's frame (the tileset's metres), while the
       // perspective path converts; scale the target so both compare like with like.
       const target = errorTarget * errorPerTexel(tiles, pixelSizeUm);
-      tiles.errorTarget = camera.isOrthographicCamera ? target / worldPerTilesetUnit : target;
+      fullTarget = camera.isOrthographicCamera ? target / worldPerTilesetUnit : target;
+      // A frame drawn at a fraction of the pixels needs a texel per DRAWN pixel, not per CSS
+      // pixel: the triangles (SwiftShader's cost that does not shrink with the pixels,
+      // docs/benchmarks.md "Streaming speed, session 8") drop by scale² with the level.
+      const scale = detailScale > 0 ? Math.min(1, detailScale) : 1;
+      tiles.errorTarget = fullTarget / scale;
+      renderer.getSize(size);
+      cursor.setFocus(focus, camera, size.x, size.y);
       tiles.update();
+      updateAwayFaces(camera);
     },
     /**
      * Maps of a whole face shared by its tiles: `trust`, a Map face name → {texture} (a face
@@ -519,7 +565,7 @@ export async function openTiledModel({
     /**
      * The tile a picked object (viewer.pick(x, y).object) belongs to: its dh_tile, whether it
      * is a leaf, its screen-space error at the last update and whether that is within the
-     * target (`sufficient`: the renderer wants nothing finer there), or null.
+     * full-resolution target (`sufficient`: nothing finer is wanted there), or null.
      */
     describeTile(object) {
       const tile = object?.userData?.tile;
@@ -527,7 +573,7 @@ export async function openTiledModel({
       const info = object.material?.userData?.tile ?? tileInfo(tile, object);
       const leaf = !tile.children?.length || tile.geometricError === 0;
       const error = tile.traversal?.error ?? Infinity;
-      return { ...(info ?? {}), leaf, error, sufficient: leaf || error <= tiles.errorTarget };
+      return { ...(info ?? {}), leaf, error, sufficient: leaf || error <= fullTarget };
     },
     /** Whether the material is one of this model's tile materials. */
     has(material) {

@@ -1,5 +1,5 @@
 import { describe, expect, it } from 'vitest';
-import { boxNormal, FACING_FLOOR, facingFactor } from '../../src/viewer/tileFacing.js';
+import { AWAY_COS, boxNormal, FACING_FLOOR, facesAway, facingFactor } from '../../src/viewer/tileFacing.js';
 
 describe('facingFactor', () => {
   it('is |cos| of the angle between normal and line of sight, within [floor, 1]', () => {
@@ -31,5 +31,24 @@ describe('boxNormal', () => {
   it('is null for a missing or degenerate box', () => {
     expect(boxNormal(undefined)).toBeNull();
     expect(boxNormal([0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 0])).toBeNull();
+  });
+});
+
+describe('facesAway', () => {
+  const identity = [1, 0, 0, 0, 1, 0, 0, 0, 1]; // the obverse: outward axis -z
+  const reverse = [-1, 0, 0, 0, 1, 0, 0, 0, -1]; // 180 degrees about y: outward +z
+  const left = [0, 0, 1, 0, 1, 0, -1, 0, 0]; // an edge turned 90 degrees about y: outward axis +x
+
+  it('is true only for a face whose outward axis turns more than 120 degrees from the camera', () => {
+    const obverseView = [0, 0, -1]; // toward a camera in front of the obverse
+    expect(facesAway(identity, obverseView)).toBe(false);
+    expect(facesAway(reverse, obverseView)).toBe(true);
+    expect(facesAway(left, obverseView)).toBe(false); // edge-on: drawn
+    const a = (110 * Math.PI) / 180; // 110 degrees from the obverse's axis: still drawn
+    expect(facesAway(identity, [Math.sin(a), 0, -Math.cos(a)])).toBe(false);
+    const b = (130 * Math.PI) / 180;
+    expect(facesAway(identity, [Math.sin(b), 0, -Math.cos(b)])).toBe(true);
+    expect(facesAway(identity, [Math.sin(b), 0, -Math.cos(b)], -0.7)).toBe(false);
+    expect(AWAY_COS).toBe(-0.5);
   });
 });
