@@ -382,9 +382,10 @@ def test_tiles_under_the_cursor_load_first(browser, library, tiled, tools):
                 step: tile.extras?.dh_tile?.pixel_step,
                 parent: tile.parent?.extras?.dh_tile?.px_rect ?? null })); }"""
         )
-        # a point off the centre, on the face: a quarter in from its top left corner
-        w, h = tiled.size_mm
-        x, y = tools.screen_of(page, [0.3 * w, 0.3 * h, 0.0])
+        # a point off the centre, near where four level-1 tiles (1024 px squares) meet, so
+        # that the zoomed view needs the finest tiles of several families
+        s_mm = tiled.pixel_size_um / 1000
+        x, y = tools.screen_of(page, [900 * s_mm, 900 * s_mm, 0.0])
         hit = page.evaluate("([x, y]) => window.hammurabi.viewer.pick(x, y)?.point", [x, y])
         assert hit is not None
         page.mouse.move(x, y)
