@@ -23,7 +23,7 @@ import { GLTFExtensionsPlugin } from '3d-tiles-renderer/three/plugins';
 import { MeshoptDecoder } from 'meshoptimizer/decoder';
 import { classifyAssets, disposeTexture, faceAssetPrefix, fetchBytes, loadQualityMaps, loadTrustMap } from './assets.js';
 import { createHeightRows } from './heightRows.js';
-import { applyPartShading, createPartMaterial } from './material.js';
+import { applyPartShading, boundModes, createPartMaterial } from './material.js';
 import { bilinearHeight } from './profile.js';
 import { facesAway, installFacingError } from './tileFacing.js';
 import { installCursorPriority } from './tileFocus.js';
@@ -74,11 +74,29 @@ function textureBytes(t) {
   return Math.ceil(img.width * img.height * bpp * (t.generateMipmaps ? 4 / 3 : 1));
 }
 
+/** Maps a tile carries that only one shading mode draws: decoded when that mode is on. */
+const LAZY_MAPS = new Set(['curvature', 'accessibility']);
+
+/** A map texture's sampling: data (never colour-managed), glTF's uv (no flip), mip-mapped. */
+function configureMap(tex) {
+  tex.colorSpace = THREE.NoColorSpace;
+  tex.flipY = false;
+  tex.generateMipmaps = true;
+  tex.minFilter = THREE.LinearMipmapLinearFilter;
+  tex.magFilter = THREE.LinearFilter;
+  tex.wrapS = THREE.ClampToEdgeWrapping;
+  tex.wrapT = THREE.ClampToEdgeWrapping;
+  return tex;
+}
+
 /**
  * glTF loader extension: the textures a tile's material names in `extras.dh_maps` (normals,
  * curvature, accessibility: texture indices) are not referenced by any glTF material slot,
  * so GLTFLoader would not load them; this loads them after the root and attaches them to
- * the material as `userData.dhTextures`.
+ * the material as `userData.dhTextures`. The maps of {@link LAZY_MAPS} are not decoded here:
+ * their texture holds the encoded image (`userData.dhEncoded`, a Blob of the GLB's bytes) until
+ * {@link decodeLazyMap} (the mode that draws it is on): a tile's parse decodes two images of
+ * five fewer (issue 19: full detail after a zoom waits for the parses).
  */
 class DhMapsGltfExtension {
   constructor(parser) {
@@ -97,17 +115,21 @@ class DhMapsGltfExtension {
         m.userData.dhTextures = out;
         for (const [kind, index] of Object.entries(maps)) {
           if (!Number.isInteger(index)) continue;
+          const encoded = LAZY_MAPS.has(kind) ? this.encodedImage(index) : null;
+          if (encoded) {
+            jobs.push(
+              encoded.then((blob) => {
+                const tex = configureMap(new THREE.Texture());
+                tex.userData.dhEncoded = blob;
+                out[kind] = tex;
+              }),
+            );
+            continue;
+          }
           jobs.push(
             this.parser.getDependency('texture', index).then((t) => {
               // A separate object per use: the normal map is data, never colour-managed.
-              const tex = t.clone();
-              tex.colorSpace = THREE.NoColorSpace;
-              tex.flipY = false;
-              tex.generateMipmaps = true;
-              tex.minFilter = THREE.LinearMipmapLinearFilter;
-              tex.magFilter = THREE.LinearFilter;
-              tex.wrapS = THREE.ClampToEdgeWrapping;
-              tex.wrapT = THREE.ClampToEdgeWrapping;
+              const tex = configureMap(t.clone());
               tex.needsUpdate = true;
               out[kind] = tex;
             }),
@@ -117,6 +139,38 @@ class DhMapsGltfExtension {
     });
     await Promise.all(jobs);
   }
+
+  /** The encoded bytes (a Blob) of a texture's image stored in the GLB, or null (a URI). */
+  encodedImage(textureIndex) {
+    const json = this.parser.json;
+    const image = json.images?.[json.textures?.[textureIndex]?.source];
+    if (!Number.isInteger(image?.bufferView)) return null;
+    return this.parser
+      .getDependency('bufferView', image.bufferView)
+      .then((view) => new Blob([view], { type: image.mimeType || 'image/png' }));
+  }
+}
+
+/**
+ * Decode a lazily loaded map (see {@link DhMapsGltfExtension}) once; resolves true when its
+ * image was set now (three.js uploads it when next drawn), false if there was nothing to do.
+ * The options are GLTFLoader's ImageBitmapLoader's: data, neither premultiplied nor converted.
+ * @param {THREE.Texture} tex
+ */
+export function decodeLazyMap(tex) {
+  const blob = tex?.userData?.dhEncoded;
+  if (!blob) return Promise.resolve(false);
+  tex.userData.dhDecoding ??= createImageBitmap(blob, { premultiplyAlpha: 'none', colorSpaceConversion: 'none' }).then((bitmap) => {
+    delete tex.userData.dhEncoded;
+    if (tex.userData.dhDisposed) {
+      bitmap.close?.(); // its tile was unloaded meanwhile
+      return false;
+    }
+    tex.image = bitmap;
+    tex.needsUpdate = true;
+    return true;
+  });
+  return tex.userData.dhDecoding;
 }
 
 /** `dh_tile` of a tile: {level, x, y, px_rect, pixel_step} from the tileset tile's extras or
@@ -306,6 +360,7 @@ export async function openTiledModel({
         materials.add(m);
       });
       perScene.set(scene, own);
+      decodeBoundMaps(scene);
     },
     // The renderer counts geometry and the textures it finds on materials; the relighting
     // material holds its textures in uniforms, so count them here (the LRU's accounting):
@@ -332,6 +387,7 @@ export async function openTiledModel({
     const own = perScene.get(scene);
     if (!own) return;
     for (const t of own.textures) {
+      t.userData.dhDisposed = true;
       t.dispose();
       if (typeof ImageBitmap !== 'undefined' && t.image instanceof ImageBitmap) t.image.close?.();
     }
@@ -396,6 +452,41 @@ export async function openTiledModel({
     for (const tile of tiles.lruCache.itemSet.keys()) {
       if (tile.engineData?.scene) tiles.lruCache.setMemoryUsage(tile, tiles.getBytesUsed(tile));
     }
+  }
+
+  /**
+   * Decode the lazily loaded maps (decodeLazyMap) the shading binds (its mode's and its lens'),
+   * of the tiles of `root` (a tile's scene) or of every tile.
+   */
+  function decodeBoundMaps(root = null) {
+    if (!shading) return Promise.resolve();
+    const modes = boundModes(shading);
+    const jobs = [];
+    const each = (m) => {
+      const f = m.userData.face;
+      const wanted = [];
+      if (modes.has('curvature') && f?.curvature?.[0]) wanted.push(f.curvature[0].texture);
+      if (modes.has('accessibility') && f?.accessibility) wanted.push(f.accessibility);
+      for (const t of wanted) {
+        const job = decodeLazyMap(t).then(
+          (set) => {
+            if (!set || disposed) return;
+            recount();
+            invalidate();
+          },
+          (err) => console.warn(`a tile's ${[...modes].join('/')} map: ${err?.message ?? err}`),
+        );
+        jobs.push(job);
+      }
+    };
+    if (root) {
+      root.traverse((o) => {
+        if (o.isMesh && materials.has(o.material)) each(o.material);
+      });
+    } else {
+      for (const m of materials) each(m);
+    }
+    return Promise.all(jobs);
   }
 
   /** A tile's material is drawn unless its face is hidden or (a whole tablet) turned away. */
@@ -512,7 +603,10 @@ export async function openTiledModel({
       }
       invalidate();
     },
-    /** Apply a shading state ({mode, curvatureScale}) to every tile, now and on load. */
+    /**
+     * Apply a shading state ({mode, curvatureScale, lensMode}) to every tile, now and on load;
+     * resolves when the loaded tiles' maps it binds are decoded.
+     */
     applyShading(s) {
       const before = shading?.mode;
       shading = { ...s };
@@ -526,6 +620,7 @@ export async function openTiledModel({
         }
       }
       if (before !== shading.mode) recount();
+      return decodeBoundMaps();
     },
     setBudgetMb(mb) {
       if (!(mb > 0)) throw new RangeError(`budget must be > 0 MB, got ${mb}`);

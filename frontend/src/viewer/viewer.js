@@ -358,7 +358,12 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     u.uHasTrust.value = Boolean(a?.trust?.texture);
     if (a?.trust?.texture) u.uTrustMap.value = a.trust.texture;
     u.uTrustLayer.value = Math.max(0, TRUST_LAYERS.indexOf(s.trustLayer));
-    model?.tiles?.applyShading(bound);
+    // A streamed model decodes the maps its tiles need for this mode (tiles.js decodeLazyMap).
+    const decoding = model?.tiles?.applyShading(bound);
+    if (decoding) {
+      const job = decoding.finally(() => pendingLoads.delete(job));
+      pendingLoads.add(job);
+    }
     for (const [i, m] of (model?.partMaterials ?? []).entries()) applyPartShading(m, a.faces[i], bound);
   }
 
@@ -789,6 +794,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
    * @returns {Promise<Blob>}
    */
   async function screenshot({ width, height }) {
+    await whenIdle(); // the maps asked for (a mode's lazily loaded or decoded ones) drawn too
     const max = renderer.capabilities.maxTextureSize;
     if (!(width >= 16 && height >= 16)) throw new RangeError('width and height must be ≥ 16 px');
     const scale = Math.min(1, max / width, max / height);
