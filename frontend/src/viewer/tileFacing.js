@@ -53,10 +53,13 @@ export function boxNormal(box, transform = null) {
 /**
  * Make a TilesRenderer scale each tile's view error by {@link facingFactor} (its first camera).
  * Wraps the instance's calculateTileViewError (plugins can only raise the error, not lower it).
+ * With `skipAway` (a whole tablet, whose faces turned away are not drawn: tiles.js), a tile
+ * whose face turns away ({@link facesAway}: the box's third axis is the scan's +z, the surface
+ * faces −z) has error 0: nothing finer than what is loaded is asked for there.
  * @param {import('3d-tiles-renderer/three').TilesRenderer} tiles
- * @param {{floor?: number}} [options]
+ * @param {{floor?: number, skipAway?: boolean}} [options]
  */
-export function installFacingError(tiles, { floor = FACING_FLOOR } = {}) {
+export function installFacingError(tiles, { floor = FACING_FLOOR, skipAway = false } = {}) {
   const base = tiles.calculateTileViewError.bind(tiles);
   const toGroup = new THREE.Matrix4();
   const dir = new THREE.Vector3();
@@ -105,6 +108,12 @@ export function installFacingError(tiles, { floor = FACING_FLOOR } = {}) {
       view[0] = centre.x;
       view[1] = centre.y;
       view[2] = centre.z;
+    }
+    // view runs from the camera to the tile; the face's outward axis is −n: it turns away
+    // when (−n)·(−view) = n·view < AWAY_COS.
+    if (skipAway && n[0] * view[0] + n[1] * view[1] + n[2] * view[2] < AWAY_COS) {
+      target.error = 0;
+      return;
     }
     target.error *= facingFactor(n, view, floor);
   };

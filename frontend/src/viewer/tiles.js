@@ -376,7 +376,8 @@ export async function openTiledModel({
     },
   };
   tiles.registerPlugin(relight);
-  installFacingError(tiles); // edge-on tiles need less detail (tileFacing.js)
+  // Edge-on tiles need less detail, a whole tablet's faces turned away none (tileFacing.js).
+  installFacingError(tiles, { skipAway: kind === 'tablet' });
   const cursor = installCursorPriority(tiles); // tiles under the cursor load first (tileFocus.js)
   const size = new THREE.Vector2();
 
