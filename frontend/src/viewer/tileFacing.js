@@ -55,7 +55,8 @@ export function boxNormal(box, transform = null) {
  * Wraps the instance's calculateTileViewError (plugins can only raise the error, not lower it).
  * With `skipAway` (a whole tablet, whose faces turned away are not drawn: tiles.js), a tile
  * whose face turns away ({@link facesAway}: the box's third axis is the scan's +z, the surface
- * faces −z) has error 0: nothing finer than what is loaded is asked for there.
+ * faces −z) has error 0: nothing finer than what is loaded is asked for there (a face's own
+ * tiles, those with `extras.dh_tile`; not the tablet's root nor its references to the faces).
  * @param {import('3d-tiles-renderer/three').TilesRenderer} tiles
  * @param {{floor?: number, skipAway?: boolean}} [options]
  */
@@ -110,8 +111,9 @@ export function installFacingError(tiles, { floor = FACING_FLOOR, skipAway = fal
       view[2] = centre.z;
     }
     // view runs from the camera to the tile; the face's outward axis is −n: it turns away
-    // when (−n)·(−view) = n·view < AWAY_COS.
-    if (skipAway && n[0] * view[0] + n[1] * view[1] + n[2] * view[2] < AWAY_COS) {
+    // when (−n)·(−view) = n·view < AWAY_COS. Only a face's own tiles (dh_tile): the tablet's
+    // root and its references to the faces' tilesets bound every face.
+    if (skipAway && tile.extras?.dh_tile && n[0] * view[0] + n[1] * view[1] + n[2] * view[2] < AWAY_COS) {
       target.error = 0;
       return;
     }

@@ -73,7 +73,8 @@ describe('installFacingError', () => {
     };
   }
   const box = [0, 0, 0, 5, 0, 0, 0, 5, 0, 0, 0, 1]; // third axis: the scan's +z
-  const tile = (rotation) => ({ boundingVolume: { box }, engineData: { transform: rotation } });
+  const dhTile = { level: 0, x: 0, y: 0, pixel_step: 4 };
+  const tile = (rotation, extras = { dh_tile: dhTile }) => ({ boundingVolume: { box }, engineData: { transform: rotation }, extras });
   const obverse = tile(new THREE.Matrix4());
   const reverse = tile(new THREE.Matrix4().makeRotationY(Math.PI));
   const edge = tile(new THREE.Matrix4().makeRotationY(Math.PI / 2));
@@ -94,6 +95,9 @@ describe('installFacingError', () => {
     expect(error(obverse)).toBeCloseTo(10, 9);
     expect(error(edge)).toBeCloseTo(10 * FACING_FLOOR, 9);
     expect(error(reverse)).toBe(0);
+    // the tablet's own tiles (its root, its references to the faces' tilesets) bound every
+    // face: never skipped
+    expect(error(tile(new THREE.Matrix4().makeRotationY(Math.PI), {}))).toBeCloseTo(10, 9);
   });
 
   it('keeps a face turned away at its facing error without skipAway (a face model)', () => {
