@@ -119,7 +119,8 @@ def thread_busy_ms(trace: dict) -> tuple[dict[str, float], dict[str, float], flo
 
 def summarise(label: str, phase: str, frames: list[dict], trace: dict, wall_ms: float) -> None:
     n = len(frames)
-    mean = lambda k: sum(f[k] for f in frames) / max(n, 1)  # noqa: E731
+    # an older build (--dist) has only some of frameStats' fields: nan for the others
+    mean = lambda k: sum(f.get(k, float("nan")) for f in frames) / max(n, 1)  # noqa: E731
     print(f"\n### {label}, {phase}: {n} frames, {wall_ms:.0f} ms")
     print(
         f"page thread per frame: interval {mean('intervalMs'):.1f} ms, tiles' update "
@@ -134,6 +135,9 @@ def summarise(label: str, phase: str, frames: list[dict], trace: dict, wall_ms: 
     print("GPU main thread's events (top 6):")
     for name, ms in sorted(gpu.items(), key=lambda kv: -kv[1])[:6]:
         print(f"- {name}: {ms:.0f} ms")
+
+
+nan = float("nan")
 
 
 def profile(browser, page, lib, label: str, args) -> None:
@@ -165,8 +169,8 @@ def profile(browser, page, lib, label: str, args) -> None:
             print("per frame (interval, update, render ms, calls, loading):")
             for f in frames:
                 print(
-                    f"  {f['intervalMs']:.0f} {f['updateMs']:.1f} {f['renderMs']:.1f} "
-                    f"{f['drawCalls']} {'L' if f['loading'] else '-'}"
+                    f"  {f['intervalMs']:.0f} {f.get('updateMs', nan):.1f} {f.get('renderMs', nan):.1f} "
+                    f"{f.get('drawCalls', '?')} {'L' if f['loading'] else '-'}"
                     f"{' S' if f['sufficient'] else ''}"
                 )
 
