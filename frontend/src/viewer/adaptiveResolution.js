@@ -37,6 +37,24 @@ export function nextResolutionScale(scale, frameMs, { targetMs = TARGET_FRAME_MS
 }
 
 /**
+ * The drawn scale for a learned one: the largest step of the ladder 1, 1/√2, 1/2, 1/(2√2), …
+ * not above it (at least `minScale`). Each change of the pixel ratio resizes the canvas' drawing
+ * buffer (its multisampled colour and depth buffers and the compositor's shared image are made
+ * anew); a scale learned frame by frame changed it every frame. On the ladder a run of frames
+ * keeps one size, and each step halves or doubles the pixels (docs/benchmarks.md, "Streaming
+ * speed, session 8").
+ * @param {number} scale in (0, 1]
+ * @param {number} [minScale]
+ */
+export function quantizeScale(scale, minScale = MIN_SCALE) {
+  if (!(scale > 0)) throw new RangeError(`scale must be > 0, got ${scale}`);
+  if (scale >= 1) return 1;
+  // Steps of √2 in scale are steps of 2 in pixels; the epsilon keeps 0.5 on its own step.
+  const k = Math.ceil(-2 * Math.log2(scale) - 1e-9);
+  return Math.max(minScale, 2 ** (-k / 2));
+}
+
+/**
  * The state of adaptive resolution for one viewer: call `moved()` when the camera moves under
  * the user's hand, `frame(timeMs)` at the start of each drawn frame (its requestAnimationFrame
  * time) to get the scale of the pixel ratio to draw it at. `onSettle` is called once the
@@ -95,7 +113,7 @@ export function createAdaptiveResolution({
       }
       lastMovingFrameMs = movedSinceFrame ? timeMs : null;
       movedSinceFrame = false;
-      return moving ? scale : 1;
+      return moving ? quantizeScale(scale, minScale) : 1;
     },
     /** Off: every frame at full resolution (e.g. for pixel-exact tests); on again with true. */
     setEnabled(on) {

@@ -53,10 +53,14 @@ export function boxNormal(box, transform = null) {
 /**
  * Make a TilesRenderer scale each tile's view error by {@link facingFactor} (its first camera).
  * Wraps the instance's calculateTileViewError (plugins can only raise the error, not lower it).
+ * With `skipAway` (a whole tablet, whose faces turned away are not drawn: tiles.js), a tile
+ * whose face turns away ({@link facesAway}: the box's third axis is the scan's +z, the surface
+ * faces −z) has error 0: nothing finer than what is loaded is asked for there (a face's own
+ * tiles, those with `extras.dh_tile`; not the tablet's root nor its references to the faces).
  * @param {import('3d-tiles-renderer/three').TilesRenderer} tiles
- * @param {{floor?: number}} [options]
+ * @param {{floor?: number, skipAway?: boolean}} [options]
  */
-export function installFacingError(tiles, { floor = FACING_FLOOR } = {}) {
+export function installFacingError(tiles, { floor = FACING_FLOOR, skipAway = false } = {}) {
   const base = tiles.calculateTileViewError.bind(tiles);
   const toGroup = new THREE.Matrix4();
   const dir = new THREE.Vector3();
@@ -106,6 +110,35 @@ export function installFacingError(tiles, { floor = FACING_FLOOR } = {}) {
       view[1] = centre.y;
       view[2] = centre.z;
     }
+    // view runs from the camera to the tile; the face's outward axis is −n: it turns away
+    // when (−n)·(−view) = n·view < AWAY_COS. Only a face's own tiles (dh_tile): the tablet's
+    // root and its references to the faces' tilesets bound every face.
+    if (skipAway && tile.extras?.dh_tile && n[0] * view[0] + n[1] * view[1] + n[2] * view[2] < AWAY_COS) {
+      target.error = 0;
+      return;
+    }
     target.error *= facingFactor(n, view, floor);
   };
+}
+
+/**
+ * Cosine above which a whole tablet's face is drawn: its outward axis may turn up to 120° from
+ * the direction toward the camera. A face turned further away lies behind the faces toward
+ * the camera (a tablet is near convex) and is not drawn: from the obverse the reverse
+ * (as many triangles as the obverse) is skipped, and SwiftShader's cost of a frame grows with
+ * its triangles, not only its pixels (docs/benchmarks.md, "Streaming speed, session 8").
+ */
+export const AWAY_COS = -0.5;
+
+/**
+ * Whether a whole tablet's face turns away from the camera.
+ * @param {ArrayLike<number>} rotation the face's scan → world rotation, column-major 3×3 (a
+ *   scan looks along its +z at a surface facing −z: the face's outward axis is −(third column))
+ * @param {ArrayLike<number>} towardCamera unit vector from the tablet toward the camera
+ * @param {number} [minCos]
+ */
+export function facesAway(rotation, towardCamera, minCos = AWAY_COS) {
+  const r = rotation;
+  const c = -(r[6] * towardCamera[0] + r[7] * towardCamera[1] + r[8] * towardCamera[2]);
+  return c < minCos;
 }

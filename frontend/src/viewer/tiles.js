@@ -25,7 +25,8 @@ import { classifyAssets, classifyFaceAssets, disposeTexture, faceAssetPrefix, fe
 import { createHeightRows } from './heightRows.js';
 import { applyPartShading, boundModes, createPartMaterial } from './material.js';
 import { bilinearHeight } from './profile.js';
-import { installFacingError } from './tileFacing.js';
+import { facesAway, installFacingError } from './tileFacing.js';
+import { installCursorPriority } from './tileFocus.js';
 import { mergeTrustMeta } from './trust.js';
 import { runQueuesPromptly } from './tileQueues.js';
 
@@ -73,6 +74,21 @@ function textureBytes(t) {
   return Math.ceil(img.width * img.height * bpp * (t.generateMipmaps ? 4 / 3 : 1));
 }
 
+/** Maps a tile carries that only one shading mode draws: decoded when that mode is on. */
+const LAZY_MAPS = new Set(['curvature', 'accessibility']);
+
+/** A map texture's sampling: data (never colour-managed), glTF's uv (no flip), mip-mapped. */
+function configureMap(tex) {
+  tex.colorSpace = THREE.NoColorSpace;
+  tex.flipY = false;
+  tex.generateMipmaps = true;
+  tex.minFilter = THREE.LinearMipmapLinearFilter;
+  tex.magFilter = THREE.LinearFilter;
+  tex.wrapS = THREE.ClampToEdgeWrapping;
+  tex.wrapT = THREE.ClampToEdgeWrapping;
+  return tex;
+}
+
 /**
  * Bytes a tile's textures hold on the GPU for the cache's accounting: its albedo and normals
  * (every mode draws them), and each lazily drawn map (curvature, accessibility) only while a
@@ -93,7 +109,10 @@ export function tileTextureBytes(own, shading) {
  * glTF loader extension: the textures a tile's material names in `extras.dh_maps` (normals,
  * curvature, accessibility: texture indices) are not referenced by any glTF material slot,
  * so GLTFLoader would not load them; this loads them after the root and attaches them to
- * the material as `userData.dhTextures`.
+ * the material as `userData.dhTextures`. The maps of {@link LAZY_MAPS} are not decoded here:
+ * their texture holds the encoded image (`userData.dhEncoded`, a Blob of the GLB's bytes) until
+ * {@link decodeLazyMap} (the mode that draws it is on): a tile's parse decodes two images of
+ * five fewer (issue 19: full detail after a zoom waits for the parses).
  */
 class DhMapsGltfExtension {
   constructor(parser) {
@@ -112,17 +131,21 @@ class DhMapsGltfExtension {
         m.userData.dhTextures = out;
         for (const [kind, index] of Object.entries(maps)) {
           if (!Number.isInteger(index)) continue;
+          const encoded = LAZY_MAPS.has(kind) ? this.encodedImage(index) : null;
+          if (encoded) {
+            jobs.push(
+              encoded.then((blob) => {
+                const tex = configureMap(new THREE.Texture());
+                tex.userData.dhEncoded = blob;
+                out[kind] = tex;
+              }),
+            );
+            continue;
+          }
           jobs.push(
             this.parser.getDependency('texture', index).then((t) => {
               // A separate object per use: the normal map is data, never colour-managed.
-              const tex = t.clone();
-              tex.colorSpace = THREE.NoColorSpace;
-              tex.flipY = false;
-              tex.generateMipmaps = true;
-              tex.minFilter = THREE.LinearMipmapLinearFilter;
-              tex.magFilter = THREE.LinearFilter;
-              tex.wrapS = THREE.ClampToEdgeWrapping;
-              tex.wrapT = THREE.ClampToEdgeWrapping;
+              const tex = configureMap(t.clone());
               tex.needsUpdate = true;
               out[kind] = tex;
             }),
@@ -132,6 +155,38 @@ class DhMapsGltfExtension {
     });
     await Promise.all(jobs);
   }
+
+  /** The encoded bytes (a Blob) of a texture's image stored in the GLB, or null (a URI). */
+  encodedImage(textureIndex) {
+    const json = this.parser.json;
+    const image = json.images?.[json.textures?.[textureIndex]?.source];
+    if (!Number.isInteger(image?.bufferView)) return null;
+    return this.parser
+      .getDependency('bufferView', image.bufferView)
+      .then((view) => new Blob([view], { type: image.mimeType || 'image/png' }));
+  }
+}
+
+/**
+ * Decode a lazily loaded map (see {@link DhMapsGltfExtension}) once; resolves true when its
+ * image was set now (three.js uploads it when next drawn), false if there was nothing to do.
+ * The options are GLTFLoader's ImageBitmapLoader's: data, neither premultiplied nor converted.
+ * @param {THREE.Texture} tex
+ */
+export function decodeLazyMap(tex) {
+  const blob = tex?.userData?.dhEncoded;
+  if (!blob) return Promise.resolve(false);
+  tex.userData.dhDecoding ??= createImageBitmap(blob, { premultiplyAlpha: 'none', colorSpaceConversion: 'none' }).then((bitmap) => {
+    delete tex.userData.dhEncoded;
+    if (tex.userData.dhDisposed) {
+      bitmap.close?.(); // its tile was unloaded meanwhile
+      return false;
+    }
+    tex.image = bitmap;
+    tex.needsUpdate = true;
+    return true;
+  });
+  return tex.userData.dhDecoding;
 }
 
 /** `dh_tile` of a tile: {level, x, y, px_rect, pixel_step} from the tileset tile's extras or
@@ -268,6 +323,7 @@ export async function openTiledModel({
   const perScene = new WeakMap(); // scene → {textures, materials}
   let shading = null;
   const hiddenFaces = new Set(); // a whole tablet's faces not drawn (the page's checkboxes)
+  const awayFaces = new Set(); // and those turned away from the camera (tileFacing.js facesAway)
   // Maps of a whole face (not tiled): its trust map {texture} and its quality maps
   // [{name, texture}] by face name ('' for a face model), one shared texture per face and map
   // (loaded once, tiledAssets), bound to its every tile.
@@ -320,12 +376,13 @@ export async function openTiledModel({
           trust: faceUv ? (faceMaps.trust.get(m.userData.faceName ?? '') ?? null) : null,
           quality: faceUv ? (faceMaps.quality.get(m.userData.faceName ?? '') ?? null) : null,
         };
-        m.visible = !hiddenFaces.has(m.userData.faceName);
+        m.visible = !hiddenFaces.has(m.userData.faceName) && !awayFaces.has(m.userData.faceName);
         if (shading) applyPartShading(m, m.userData.face, shading, false);
         obj.material = m;
         materials.add(m);
       });
       perScene.set(scene, own);
+      decodeBoundMaps(scene);
     },
     // The renderer counts geometry and the textures it finds on materials; the relighting
     // material holds its textures in uniforms, so count them here (the LRU's accounting):
@@ -338,7 +395,10 @@ export async function openTiledModel({
     },
   };
   tiles.registerPlugin(relight);
-  installFacingError(tiles); // edge-on tiles need less detail (tileFacing.js)
+  // Edge-on tiles need less detail, a whole tablet's faces turned away none (tileFacing.js).
+  installFacingError(tiles, { skipAway: kind === 'tablet' });
+  const cursor = installCursorPriority(tiles); // tiles under the cursor load first (tileFocus.js)
+  const size = new THREE.Vector2();
 
   tiles.addEventListener('dispose-model', ({ scene }) => {
     scene.traverse((obj) => {
@@ -347,6 +407,7 @@ export async function openTiledModel({
     const own = perScene.get(scene);
     if (!own) return;
     for (const t of own.textures) {
+      t.userData.dhDisposed = true;
       t.dispose();
       if (typeof ImageBitmap !== 'undefined' && t.image instanceof ImageBitmap) t.image.close?.();
     }
@@ -405,6 +466,7 @@ export async function openTiledModel({
   const heightsByFace = new Map();
   let cameraInUse = null;
   let disposed = false;
+  let fullTarget = tiles.errorTarget; // the renderer's target at full resolution (describeTile)
 
   /** The LRU's bytes of every loaded tile again (0.5.3's recalculateBytesUsed() iterates its
    * cache Map's values, not its tiles, and so changes nothing). */
@@ -412,6 +474,66 @@ export async function openTiledModel({
     for (const tile of tiles.lruCache.itemSet.keys()) {
       if (tile.engineData?.scene) tiles.lruCache.setMemoryUsage(tile, tiles.getBytesUsed(tile));
     }
+  }
+
+  /**
+   * Decode the lazily loaded maps (decodeLazyMap) the shading binds (its mode's and its lens'),
+   * of the tiles of `root` (a tile's scene) or of every tile.
+   */
+  function decodeBoundMaps(root = null) {
+    if (!shading) return Promise.resolve();
+    const modes = boundModes(shading);
+    const jobs = [];
+    const each = (m) => {
+      const f = m.userData.face;
+      const wanted = [];
+      if (modes.has('curvature') && f?.curvature?.[0]) wanted.push(f.curvature[0].texture);
+      if (modes.has('accessibility') && f?.accessibility) wanted.push(f.accessibility);
+      for (const t of wanted) {
+        const job = decodeLazyMap(t).then(
+          (set) => {
+            if (!set || disposed) return;
+            recount();
+            invalidate();
+          },
+          (err) => console.warn(`a tile's ${[...modes].join('/')} map: ${err?.message ?? err}`),
+        );
+        jobs.push(job);
+      }
+    };
+    if (root) {
+      root.traverse((o) => {
+        if (o.isMesh && materials.has(o.material)) each(o.material);
+      });
+    } else {
+      for (const m of materials) each(m);
+    }
+    return Promise.all(jobs);
+  }
+
+  /** A tile's material is drawn unless its face is hidden or (a whole tablet) turned away. */
+  function applyVisibility() {
+    for (const m of materials) m.visible = !hiddenFaces.has(m.userData.faceName) && !awayFaces.has(m.userData.faceName);
+  }
+
+  const toCamera = new THREE.Vector3();
+  const towardCamera = [0, 0, 1];
+  /** The faces turned away from `camera` now (a whole tablet's; a face model has one side). */
+  function updateAwayFaces(camera) {
+    if (kind !== 'tablet') return;
+    camera.getWorldDirection(toCamera).negate(); // the view axis: a perspective camera's too
+    toCamera.toArray(towardCamera);
+    let changed = false;
+    for (const m of materials) {
+      const face = m.userData.faceName;
+      const away = facesAway(m.uniforms.uObjectToWorld.value.elements, towardCamera);
+      if (away !== awayFaces.has(face)) {
+        if (away) awayFaces.add(face);
+        else awayFaces.delete(face);
+        changed = true;
+      }
+    }
+    if (changed) applyVisibility();
   }
 
   function curvatureLayers(texture) {
@@ -439,7 +561,7 @@ export async function openTiledModel({
     setHiddenFaces(names) {
       hiddenFaces.clear();
       for (const n of names ?? []) hiddenFaces.add(n);
-      for (const m of materials) m.visible = !hiddenFaces.has(m.userData.faceName);
+      applyVisibility();
       invalidate();
     },
     /**
@@ -476,8 +598,16 @@ export async function openTiledModel({
     radius: sphere.radius || 1,
     /** Full-resolution heights (height.f32 by HTTP Range), or null: {reader, pixelSizeUm, onSurface}. */
     heights,
-    /** Call before each frame: culls, picks levels by screen-space error, queues loads. */
-    update(camera, renderer) {
+    /**
+     * Call before each frame: culls, picks levels by screen-space error, queues loads.
+     * @param {THREE.Camera} camera
+     * @param {THREE.WebGLRenderer} renderer
+     * @param {{focus?: {x: number, y: number} | null, detailScale?: number}} [options]
+     *   `focus`: the cursor (CSS px from the canvas' top left): tiles nearest it load first;
+     *   `detailScale` (0, 1]: the frame's pixel ratio scale (adaptive resolution while the
+     *   camera turns): levels are chosen for the pixels drawn, coarser by 1/scale
+     */
+    update(camera, renderer, { focus = null, detailScale = 1 } = {}) {
       if (disposed) return;
       if (cameraInUse !== camera) {
         if (cameraInUse) tiles.deleteCamera(cameraInUse);
@@ -491,8 +621,16 @@ export async function openTiledModel({
       // here) but geometric errors in its group's frame (the tileset's metres), while the
       // perspective path converts; scale the target so both compare like with like.
       const target = errorTarget * errorPerTexel(tiles, pixelSizeUm);
-      tiles.errorTarget = camera.isOrthographicCamera ? target / worldPerTilesetUnit : target;
+      fullTarget = camera.isOrthographicCamera ? target / worldPerTilesetUnit : target;
+      // A frame drawn at a fraction of the pixels needs a texel per DRAWN pixel, not per CSS
+      // pixel: the triangles (SwiftShader's cost that does not shrink with the pixels,
+      // docs/benchmarks.md "Streaming speed, session 8") drop by scale² with the level.
+      const scale = detailScale > 0 ? Math.min(1, detailScale) : 1;
+      tiles.errorTarget = fullTarget / scale;
+      renderer.getSize(size);
+      cursor.setFocus(focus, camera, size.x, size.y);
       tiles.update();
+      updateAwayFaces(camera);
     },
     /**
      * Maps of a whole face shared by its tiles: `trust`, a Map face name → {texture} (a face
@@ -510,7 +648,10 @@ export async function openTiledModel({
       }
       invalidate();
     },
-    /** Apply a shading state ({mode, curvatureScale}) to every tile, now and on load. */
+    /**
+     * Apply a shading state ({mode, curvatureScale, lensMode}) to every tile, now and on load;
+     * resolves when the loaded tiles' maps it binds are decoded.
+     */
     applyShading(s) {
       const before = shading ? boundModes(shading) : new Set();
       shading = { ...s };
@@ -525,6 +666,7 @@ export async function openTiledModel({
         if (left.includes('accessibility') && f.accessibility) f.accessibility.dispose();
       }
       if (left.length || [...now].some((mode) => !before.has(mode))) recount();
+      return decodeBoundMaps();
     },
     setBudgetMb(mb) {
       if (!(mb > 0)) throw new RangeError(`budget must be > 0 MB, got ${mb}`);
@@ -564,7 +706,7 @@ export async function openTiledModel({
     /**
      * The tile a picked object (viewer.pick(x, y).object) belongs to: its dh_tile, whether it
      * is a leaf, its screen-space error at the last update and whether that is within the
-     * target (`sufficient`: the renderer wants nothing finer there), or null.
+     * full-resolution target (`sufficient`: nothing finer is wanted there), or null.
      */
     describeTile(object) {
       const tile = object?.userData?.tile;
@@ -572,7 +714,7 @@ export async function openTiledModel({
       const info = object.material?.userData?.tile ?? tileInfo(tile, object);
       const leaf = !tile.children?.length || tile.geometricError === 0;
       const error = tile.traversal?.error ?? Infinity;
-      return { ...(info ?? {}), leaf, error, sufficient: leaf || error <= tiles.errorTarget };
+      return { ...(info ?? {}), leaf, error, sufficient: leaf || error <= fullTarget };
     },
     /** Whether the material is one of this model's tile materials. */
     has(material) {

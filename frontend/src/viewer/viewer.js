@@ -65,8 +65,18 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
   const fullPixelRatio = Math.min(window.devicePixelRatio || 1, 2);
   renderer.setPixelRatio(fullPixelRatio);
   // Reduced resolution while the camera moves under the user's hand, full when it stops.
-  const adaptive = createAdaptiveResolution({ onSettle: () => invalidate() });
-  const frameStats = { lastScale: 1, firstTileRenderMs: null };
+  const adaptive = createAdaptiveResolution({
+    onSettle: () => {
+      zooming = false;
+      invalidate();
+    },
+  });
+  // This move zooms (wheel, keys): it asks for new detail, so the tiles' levels stay those of
+  // full resolution (an orbit or pan frame takes levels for its reduced pixels: tiles.js).
+  let zooming = false;
+  // The last frame's cost on the page's thread (bench/streaming_profile.py): the tiles' update
+  // and the render call (WebGL commands issued; the GPU process draws them afterwards).
+  const frameStats = { lastScale: 1, firstTileRenderMs: null, frames: 0, updateMs: 0, renderMs: 0, drawCalls: 0, triangles: 0 };
   let standIn = null; // a mesh with the tiles' material, for precompileTileProgram
   renderer.setClearColor(0x1d1f24, 1);
   renderer.outputColorSpace = THREE.SRGBColorSpace;
@@ -157,16 +167,37 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     camera.getWorldDirection(u.uViewDirOrtho.value).negate();
     u.uProjection.value.copy(camera.projectionMatrix);
     if (state.light.follow) updateLightDirection();
-    model?.tiles?.update(camera, renderer); // streaming: levels by screen-space error, loads
-    if (frameStats.firstTileRenderMs === null && model?.tiles?.stats().visibleTiles > 0) {
-      // The first frame with a tile: how long its draw call took (shader program, uploads).
-      const t0 = performance.now();
-      renderer.render(scene, camera);
-      frameStats.firstTileRenderMs = performance.now() - t0;
-      return;
-    }
+    const t0 = performance.now();
+    // Streaming: levels by screen-space error, loads (those under the cursor first).
+    const detailScale = adaptive.moving && !zooming ? renderer.getPixelRatio() / fullPixelRatio : 1;
+    model?.tiles?.update(camera, renderer, { focus: cursor, detailScale });
+    const firstTile = frameStats.firstTileRenderMs === null && model?.tiles?.stats().visibleTiles > 0;
+    const t1 = performance.now();
     renderer.render(scene, camera);
+    const t2 = performance.now();
+    // The first frame with a tile: how long its draw call took (shader program, uploads).
+    if (firstTile) frameStats.firstTileRenderMs = t2 - t1;
+    frameStats.frames++;
+    frameStats.updateMs = t1 - t0;
+    frameStats.renderMs = t2 - t1;
+    frameStats.drawCalls = renderer.info.render.calls;
+    frameStats.triangles = renderer.info.render.triangles;
   }
+
+  // The cursor over the canvas (CSS px from its top left), null when outside: the tiles
+  // under it load first (tileFocus.js), e.g. where a wheel zoom went.
+  let cursor = null;
+  const onPointer = (e) => {
+    const r = canvas.getBoundingClientRect();
+    cursor = { x: e.clientX - r.left, y: e.clientY - r.top };
+    if (e.type === 'wheel') zooming = true;
+  };
+  const onLeave = () => {
+    cursor = null;
+  };
+  canvas.addEventListener('pointermove', onPointer);
+  canvas.addEventListener('wheel', onPointer, { passive: true });
+  canvas.addEventListener('pointerleave', onLeave);
 
   const resizeObserver = new ResizeObserver(resize);
   resizeObserver.observe(canvas);
@@ -345,7 +376,12 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     u.uHasTrust.value = Boolean(a?.trust?.texture);
     if (a?.trust?.texture) u.uTrustMap.value = a.trust.texture;
     u.uTrustLayer.value = Math.max(0, TRUST_LAYERS.indexOf(s.trustLayer));
-    model?.tiles?.applyShading(bound);
+    // A streamed model decodes the maps its tiles need for this mode (tiles.js decodeLazyMap).
+    const decoding = model?.tiles?.applyShading(bound);
+    if (decoding) {
+      const job = decoding.finally(() => pendingLoads.delete(job));
+      pendingLoads.add(job);
+    }
     for (const [i, m] of (model?.partMaterials ?? []).entries()) applyPartShading(m, a.faces[i], bound);
   }
 
@@ -428,6 +464,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
       updateProjection();
     }
     controls.update();
+    zooming = true;
     adaptive.moved();
     invalidate();
     onChange('camera');
@@ -785,6 +822,7 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
    * @returns {Promise<Blob>}
    */
   async function screenshot({ width, height }) {
+    await whenIdle(); // the maps asked for (a mode's lazily loaded or decoded ones) drawn too
     const max = renderer.capabilities.maxTextureSize;
     if (!(width >= 16 && height >= 16)) throw new RangeError('width and height must be ≥ 16 px');
     const scale = Math.min(1, max / width, max / height);
@@ -856,6 +894,9 @@ export function createViewer(canvas, { onChange = () => {} } = {}) {
     standIn?.geometry.dispose();
     standIn?.material.dispose();
     resizeObserver.disconnect();
+    canvas.removeEventListener('pointermove', onPointer);
+    canvas.removeEventListener('wheel', onPointer);
+    canvas.removeEventListener('pointerleave', onLeave);
     controls.dispose();
     material.userData.blank.dispose();
     material.dispose();

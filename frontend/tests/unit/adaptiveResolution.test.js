@@ -1,5 +1,5 @@
 import { describe, expect, it } from 'vitest';
-import { createAdaptiveResolution, MIN_SCALE, nextResolutionScale, TARGET_FRAME_MS } from '../../src/viewer/adaptiveResolution.js';
+import { createAdaptiveResolution, MIN_SCALE, nextResolutionScale, quantizeScale, TARGET_FRAME_MS } from '../../src/viewer/adaptiveResolution.js';
 
 describe('nextResolutionScale', () => {
   it('keeps the frame-time target: the pixel count follows target / measured', () => {
@@ -43,6 +43,30 @@ function manualTimers() {
     },
   };
 }
+
+describe('quantizeScale', () => {
+  it('rounds down to steps of sqrt(2), at least the minimum, so the drawing buffer keeps a size', () => {
+    expect(quantizeScale(1)).toBe(1);
+    expect(quantizeScale(0.99)).toBeCloseTo(Math.SQRT1_2, 12);
+    expect(quantizeScale(Math.SQRT1_2)).toBeCloseTo(Math.SQRT1_2, 12);
+    expect(quantizeScale(0.6)).toBe(0.5);
+    expect(quantizeScale(0.5)).toBe(0.5);
+    expect(quantizeScale(0.4)).toBeCloseTo(0.5 * Math.SQRT1_2, 12);
+    expect(quantizeScale(0.1)).toBe(MIN_SCALE);
+    expect(quantizeScale(0.1, 0.05)).toBeCloseTo(2 ** -3.5, 12);
+    expect(() => quantizeScale(0)).toThrow(RangeError);
+  });
+
+  it('is what a moving frame is drawn at, while the learned scale stays off the ladder', () => {
+    const a = createAdaptiveResolution({ onSettle: () => {}, ...manualTimers() });
+    a.moved();
+    a.frame(0);
+    a.moved();
+    // a 45 ms frame: learned sqrt(33.3 / 45) = 0.86, drawn at the step below, 1/sqrt(2)
+    expect(a.frame(45)).toBeCloseTo(Math.SQRT1_2, 12);
+    expect(a.scale).toBeCloseTo(Math.sqrt(TARGET_FRAME_MS / 45), 12);
+  });
+});
 
 describe('createAdaptiveResolution', () => {
   it('draws at full resolution when still, lower while slow frames move, full again once settled', () => {

@@ -387,3 +387,46 @@ def test_a_whole_tablet_streams_face_by_face(browser, library, tiled_tablet):
         assert not errors, errors
     finally:
         context.close()
+
+
+def test_tiles_under_the_cursor_load_first(browser, library, tiled, tools):
+    """After a wheel zoom the finest tiles load in the order of their parent's distance from
+    the cursor (tileFocus.js): the family of the tile under the cursor first. One download and
+    one parse at a time, so the order of arrival is the queues' order."""
+    context = browser.new_context(viewport=VIEWPORT)
+    page = context.new_page()
+    try:
+        tablet_id = library.tablets["P999003"]
+        page.goto(f"{library.url}/tablet.html?id={tablet_id}#m={tiled.id}")
+        page.wait_for_function(
+            "() => document.getElementById('viewer').dataset.loaded", timeout=60000
+        )
+        wait_streamed(page)
+        page.evaluate(
+            """() => { const t = window.hammurabi.viewer.model.tiles.tiles;
+              t.downloadQueue.maxJobsPerOrigin = 1; t.parseQueue.maxJobs = 1;
+              window.__loads = [];
+              t.addEventListener('load-model', ({ tile }) => window.__loads.push({
+                step: tile.extras?.dh_tile?.pixel_step,
+                parent: tile.parent?.extras?.dh_tile?.px_rect ?? null })); }"""
+        )
+        # a point off the centre, near where four level-1 tiles (1024 px squares) meet, so
+        # that the zoomed view needs the finest tiles of several families
+        s_mm = tiled.pixel_size_um / 1000
+        x, y = tools.screen_of(page, [900 * s_mm, 900 * s_mm, 0.0])
+        hit = page.evaluate("([x, y]) => window.hammurabi.viewer.pick(x, y)?.point", [x, y])
+        assert hit is not None
+        page.mouse.move(x, y)
+        page.mouse.wheel(0, -100 * np.log(4) / -np.log(0.95))  # x4 (OrbitControls: 0.95 / 100)
+        wait_streamed(page)
+        loads = page.evaluate("() => window.__loads")
+        c = np.array(hit[:2]) * 1000 / tiled.pixel_size_um  # the cursor on the image grid, px
+        dist = [
+            float(np.hypot(max(r[0] - c[0], 0, c[0] - r[2]), max(r[1] - c[1], 0, c[1] - r[3])))
+            for r in (t["parent"] for t in loads if t["step"] == 1 and t["parent"])
+        ]
+        assert len(set(dist)) >= 2, (loads, c)  # families at different distances loaded
+        assert dist == sorted(dist), (dist, c)
+        assert dist[0] == 0, dist  # the family under the cursor first
+    finally:
+        context.close()
