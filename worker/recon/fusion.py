@@ -776,7 +776,8 @@ def sharpen_heights(
     sharpened and flat ground keeps its noise. The expansion holds for a continuous surface,
     whose slope turns by at most 2·`max_slope` across a pixel, i.e. |∇²h| ≤ 2·max_slope·s
     (µm per px²); beyond that (a cliff, a fringe outlier) the correction is clipped there
-    instead of growing with the jump.
+    instead of growing with the jump. A bend that no 4-neighbour shares (`_lone_bends`: an
+    isolated outlier, which a blurred surface cannot hold) is left as it is.
 
     height_um: (H, W) µm, NaN off the mask; mask: (H, W) bool; blur_sigma_px ≥ 0.
     Returns (H, W) float32, NaN where height_um is.
@@ -803,6 +804,30 @@ def sharpen_heights(
     return result
 
 
+def _lone_bends(lap: np.ndarray, significant: np.ndarray) -> np.ndarray:
+    """Pixels whose significant bend no 4-neighbour shares (a significant Laplacian of the
+    same sign): a point-like extremum narrower than a pixel both ways.
+
+    A blurred surface's Laplacian is the blurred Laplacian of the surface, so a bend spreads
+    over its neighbours along at least one direction: a wedge's floor or rim runs along a
+    line. A single pixel whose Laplacian all four neighbours oppose is an isolated outlier of
+    the fused heights (a one-pixel normal outlier integrates into such a dipole), which the
+    backward heat step would double: there the data contradict the blur model and the
+    sharpening stands down.
+    """
+    pos = significant & (lap > 0)
+    neg = significant & (lap < 0)
+    out = np.zeros_like(significant)
+    for same in (pos, neg):
+        shared = np.zeros_like(same)
+        shared[1:, :] |= same[:-1, :]
+        shared[:-1, :] |= same[1:, :]
+        shared[:, 1:] |= same[:, :-1]
+        shared[:, :-1] |= same[:, 1:]
+        out |= same & ~shared
+    return out
+
+
 def _sharpened(h, valid, blur_sigma_px, pixel_size_um, max_slope, significance):
     """`sharpen_heights` on a box holding every valid pixel."""
     f = np.where(valid, h, 0).astype(np.float32, copy=False)
@@ -821,6 +846,7 @@ def _sharpened(h, valid, blur_sigma_px, pixel_size_um, max_slope, significance):
     lap2 = np.square(lap)
     with np.errstate(invalid="ignore", divide="ignore"):
         gain = np.where(lap2 > floor, 1 - floor / lap2, np.float32(0))
+    gain[_lone_bends(lap, lap2 > floor)] = 0
     limit = np.float32(2 * max_slope * pixel_size_um)
     out = h - np.float32(0.5 * blur_sigma_px**2) * np.clip(gain * lap, -limit, limit)
     return np.where(valid, out, h).astype(np.float32, copy=False)

@@ -227,6 +227,27 @@ def test_sharpening_restores_a_blurred_groove_and_leaves_noise_alone():
     assert _rms(kept - flat) < 0.1
 
 
+def test_sharpening_stands_down_at_a_lone_outlier():
+    # A blurred groove with a one-pixel outlier beside it (what a single wrong normal leaves
+    # in the fused heights): the groove is sharpened as without it, the outlier's own bend,
+    # which none of its neighbours shares, is left as measured instead of being doubled.
+    from scipy import ndimage
+
+    from worker.recon.fusion import sharpen_heights
+
+    clean = ndimage.gaussian_filter1d(_groove(), 0.6, axis=1, mode="nearest").astype(np.float32)
+    spiked = clean.copy()
+    r, c_out = 20, 10
+    spiked[r, c_out] += 40.0
+    mask = np.ones(clean.shape, bool)
+    got_clean = sharpen_heights(clean, mask, blur_sigma_px=0.6, pixel_size_um=S_UM)
+    got = sharpen_heights(spiked, mask, blur_sigma_px=0.6, pixel_size_um=S_UM)
+    assert got[r, c_out] == spiked[r, c_out]  # not pushed further out
+    c = clean.shape[1] // 2
+    np.testing.assert_array_equal(got[:, c - 3 : c + 4], got_clean[:, c - 3 : c + 4])
+    assert np.all(got[1:-1, c] < clean[1:-1, c] - 0.5)  # the floor still deepened (inner rows)
+
+
 def test_point_sample_sharpening_undoes_the_pixel_area():
     # The pixel-averaged groove is shallower than its point samples at the pixel centres
     # (the V's tip is averaged over the pixel, 2 µm here); sharpening by the pixel's own area alone
