@@ -29,6 +29,7 @@ Goals (issue 19): first render <= 1 s, full detail under the cursor <= 2 s after
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib.util
 import os
 import sys
@@ -246,6 +247,31 @@ def measure_single_mesh(page, label: str, model_dir: Path, args) -> dict:
     }
 
 
+@contextlib.contextmanager
+def library_and_browser(models: list[tuple[str, Path]], dist: Path | None = None):
+    """A library server on loopback holding `models` ((label, model directory), each an
+    obverse of P999003) and Debian's Chromium: yields (library, browser); both stopped after.
+    `dist`: a saved frontend build to serve instead of building this tree's."""
+    server = _server_module()
+    if dist is not None:
+        server.ensure_frontend_built = lambda: dist.resolve()
+    from playwright.sync_api import sync_playwright
+
+    with tempfile.TemporaryDirectory(prefix="bench-streaming-") as tmp:
+        lib = server.start_library(
+            Path(tmp), extra_models=[(lb, "P999003", "obverse", d) for lb, d in models]
+        )
+        try:
+            with sync_playwright() as p:
+                browser = server.launch_chromium(p)
+                try:
+                    yield lib, browser
+                finally:
+                    browser.close()
+        finally:
+            lib.stop()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
@@ -271,32 +297,18 @@ def main() -> None:
             parser.error(f"{label}: each --model needs its own label")
         models.append((label, model_dir))
 
-    server = _server_module()
-    if args.dist is not None:
-        if not (args.dist / "tablet.html").is_file():
-            parser.error(f"{args.dist}: not a built frontend (no tablet.html)")
-        server.ensure_frontend_built = lambda: args.dist.resolve()
-    from playwright.sync_api import sync_playwright
-
+    if args.dist is not None and not (args.dist / "tablet.html").is_file():
+        parser.error(f"{args.dist}: not a built frontend (no tablet.html)")
     rows = []
-    with tempfile.TemporaryDirectory(prefix="bench-streaming-") as tmp:
-        lib = server.start_library(
-            Path(tmp), extra_models=[(lb, "P999003", "obverse", d) for lb, d in models]
-        )
-        try:
-            with sync_playwright() as p:
-                browser = server.launch_chromium(p)
-                for label, model_dir in models:
-                    context = browser.new_context(viewport=VIEWPORT)
-                    page = context.new_page()
-                    start = time.perf_counter()
-                    rows.append(measure(page, lib, label, model_dir, args))
-                    rows[-1]["wall_s"] = time.perf_counter() - start
-                    print(f"measured {label}: {rows[-1]}", file=sys.stderr, flush=True)
-                    context.close()
-                browser.close()
-        finally:
-            lib.stop()
+    with library_and_browser(models, args.dist) as (lib, browser):
+        for label, model_dir in models:
+            context = browser.new_context(viewport=VIEWPORT)
+            page = context.new_page()
+            start = time.perf_counter()
+            rows.append(measure(page, lib, label, model_dir, args))
+            rows[-1]["wall_s"] = time.perf_counter() - start
+            print(f"measured {label}: {rows[-1]}", file=sys.stderr, flush=True)
+            context.close()
 
     mb = 1024 * 1024
     load = os.getloadavg()[0]

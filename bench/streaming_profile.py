@@ -26,7 +26,6 @@ import argparse
 import json
 import os
 import sys
-import tempfile
 from collections import defaultdict
 from pathlib import Path
 
@@ -186,26 +185,12 @@ def main() -> None:
     for label, d in models:
         if not (d / "tiles" / "index.json").is_file():
             parser.error(f"{label}: {d} has no tiles/index.json")
-    server = streaming._server_module()
-    if args.dist is not None:
-        server.ensure_frontend_built = lambda: args.dist.resolve()
-    from playwright.sync_api import sync_playwright
-
     print(f"load average {os.getloadavg()[0]:.1f} at the start")
-    with tempfile.TemporaryDirectory(prefix="bench-streaming-profile-") as tmp:
-        lib = server.start_library(
-            Path(tmp), extra_models=[(lb, "P999003", "obverse", d) for lb, d in models]
-        )
-        try:
-            with sync_playwright() as p:
-                browser = server.launch_chromium(p)
-                for label, _ in models:
-                    context = browser.new_context(viewport=streaming.VIEWPORT)
-                    profile(browser, context.new_page(), lib, label, args)
-                    context.close()
-                browser.close()
-        finally:
-            lib.stop()
+    with streaming.library_and_browser(models, args.dist) as (lib, browser):
+        for label, _ in models:
+            context = browser.new_context(viewport=streaming.VIEWPORT)
+            profile(browser, context.new_page(), lib, label, args)
+            context.close()
     print(f"\nload average {os.getloadavg()[0]:.1f} at the end")
 
 
