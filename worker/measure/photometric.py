@@ -22,11 +22,12 @@ __all__ = [
 
 # Width of the neighbourhood whose majority light set the fringe path's normals are fitted
 # from (0: off), and the spread of the window's normals (± degrees about their mean) beyond
-# which each pixel keeps its own set. bench/robustness.py, 25 scans: without the stand-down,
-# 5 px lowered the height MAE on 14 scans but raised native-random-6's (2.65 → 2.83 µm, wedge
-# depth 11.00 → 12.40), whose loss sits where the normals turn; with it (10°) the MAE fell
-# on 8 scans and rose on none by more than 1 % (12°: random-6 as without; 8°: random-0's
-# gain gone) (docs/benchmarks.md, issue 15, session 8).
+# which each pixel keeps its own set. Without the stand-down 5 px raised native-random-6's
+# height MAE (2.65 → 2.85 µm, wedge depth 10.98 → 12.98; session 7, 10 scans), whose loss
+# sits where the normals turn. bench/robustness.py, 25 scans: at 10° the MAE fell on 8 scans
+# by more than 1 % and rose on one (native-paper-like, 0.391 → 0.395 µm); at 12° random-6
+# lost as without (2.83 µm, 12.40); at 8° random-0's gain was gone (docs/benchmarks.md,
+# issue 15, session 8).
 _CONSENSUS_WINDOW_PX = 5
 _CONSENSUS_MAX_TURN_DEG = 10.0
 

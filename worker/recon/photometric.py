@@ -200,6 +200,11 @@ def photometric_stereo(
     s_all, lights, mask = _validate(shading, light_dirs, mask)
     if not (0.0 <= shadow_fraction < 1.0):
         raise ValueError(f"shadow_fraction must lie in [0, 1), got {shadow_fraction}")
+    if consensus_window_px < 0 or (consensus_window_px and not 0 < consensus_max_turn_deg <= 180):
+        raise ValueError(
+            "consensus_window_px must be >= 0 and consensus_max_turn_deg in (0, 180], got "
+            f"{consensus_window_px} and {consensus_max_turn_deg}"
+        )
     if outlier_tolerance <= 0:
         raise ValueError(f"outlier_tolerance must be > 0, got {outlier_tolerance}")
     if noise_sigma is not None and not (noise_sigma >= 0):

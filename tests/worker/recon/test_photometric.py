@@ -391,3 +391,11 @@ def test_consensus_stands_down_at_a_crease():
     assert same[crease].all()  # stood down: the pixel's own fit, bit for bit
     assert not np.all(loose.normals[crease] == own.normals[crease])  # the set acts without it
     assert not same[:, 5:25].all()  # away from the crease it still acts
+
+
+def test_consensus_options_are_checked():
+    s, ls, _ = _biased_light_sphere(np.random.default_rng(8), 0.0)
+    with pytest.raises(ValueError, match="consensus_max_turn_deg"):
+        photometric_stereo(s, ls, consensus_window_px=5, consensus_max_turn_deg=0.0)
+    with pytest.raises(ValueError, match="consensus_window_px"):
+        photometric_stereo(s, ls, consensus_window_px=-1)
