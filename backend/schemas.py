@@ -122,6 +122,12 @@ class UserOut(ORMModel):
         return cls.model_validate(data)
 
 
+class SessionOut(BaseModel):
+    """Who a browser is signed in as; ``user`` is null for an anonymous reader."""
+
+    user: UserOut | None
+
+
 class UserCreate(BaseModel):
     email: str = Field(pattern=EMAIL_PATTERN, max_length=320)
     password: str | None = Field(default=None, min_length=8, max_length=1000)

@@ -13,10 +13,10 @@ from anyio import to_thread
 from fastapi import APIRouter, Request, Response
 
 from backend import crud, security
-from backend.api.deps import CurrentUser, SessionDep, SettingsDep
+from backend.api.deps import CurrentUser, OptionalUser, SessionDep, SettingsDep
 from backend.db import session_scope
 from backend.errors import ApiError
-from backend.schemas import LoginIn, PasswordChangeIn, UserOut
+from backend.schemas import LoginIn, PasswordChangeIn, SessionOut, UserOut
 from backend.settings import Settings
 from backend.tables import User
 
@@ -184,3 +184,12 @@ def logout(request: Request, session: SessionDep, settings: SettingsDep) -> Resp
 @router.get("/me", response_model=UserOut)
 def me(user: CurrentUser):
     return UserOut.of(user)
+
+
+@router.get("/session", response_model=SessionOut)
+def session_state(user: OptionalUser):
+    """The signed-in user or null, always 200: pages ask on every load, and a reader who is
+    not signed in is not an error (``/auth/me`` answers them 401, which browsers log as a
+    failed request on every anonymous page view). A revoked or forged cookie reads as
+    anonymous, exactly as on every other route."""
+    return SessionOut(user=UserOut.of(user) if user is not None else None)

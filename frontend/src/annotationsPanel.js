@@ -69,7 +69,7 @@ export function bindAnnotations(viewer, { container, canvas, stopTools }) {
   // --- data ---------------------------------------------------------------------------------
   async function setTablet(next) {
     tablet = next;
-    me = await api.me().catch(() => null);
+    me = await api.sessionUser().catch(() => null);
     login.hidden = canAnnotate(me);
     newButton.hidden = !canAnnotate(me) || !model;
     translit.hidden = true;

@@ -66,7 +66,8 @@ const api = (path) => `${API_PREFIX}${path}`;
 // --- auth -------------------------------------------------------------------------------------
 export const login = (email, password) => request('POST', api('/auth/login'), { json: { email, password } });
 export const logout = () => request('POST', api('/auth/logout'));
-export const me = () => request('GET', api('/auth/me'));
+/** The signed-in user, or null for an anonymous reader (200 either way: no failed request logged). */
+export const sessionUser = () => request('GET', api('/auth/session')).then((session) => session.user);
 
 // --- tablets ----------------------------------------------------------------------------------
 /**

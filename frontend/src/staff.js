@@ -13,7 +13,8 @@ let jobTimer = null;
 
 async function whoami() {
   try {
-    const user = await api.me();
+    const user = await api.sessionUser();
+    if (!user) throw Object.assign(new Error('not signed in'), { status: 401 });
     $('whoami').textContent = `${user.email} (${user.role})`;
     $('logout').hidden = false;
     $('login-section').hidden = true;

@@ -402,7 +402,7 @@ async function main() {
     renderCatalogue(tablet);
     annotations.setTablet(tablet).catch(reportError);
     api
-      .me()
+      .sessionUser()
       .catch(() => null)
       .then((me) => licence.setContext(me, tablet));
     await refreshScans({ pickModel: true });

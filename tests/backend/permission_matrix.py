@@ -124,6 +124,7 @@ MATRIX: dict[str, list[Case]] = {
         )
     ],
     "GET /api/v1/auth/me": [Case("signed in", expect(401, 200, 200, 200, 200))],
+    "GET /api/v1/auth/session": [Case("anyone", expect(200, 200, 200, 200, 200))],
     "GET /api/v1/users": [Case("admins only", expect(401, 403, 403, 403, 200))],
     "POST /api/v1/users": [
         Case(

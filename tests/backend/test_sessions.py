@@ -103,3 +103,23 @@ def test_own_password_change_needs_the_current_password(app, client, world):
         headers=world.headers("staff_own"),
     )
     assert token.status_code == 403  # the same through an API token
+
+
+SESSION = "/api/v1/auth/session"
+
+
+def test_session_is_null_for_anonymous_and_revoked_cookies_and_the_user_when_signed_in(
+    app, client, world
+):
+    assert client.get(SESSION).json() == {"user": None}
+    cookie = _login(client, world.emails["reader"])
+    body = client.get(SESSION).json()
+    assert body["user"]["email"] == world.emails["reader"]
+    assert body["user"]["role"] == "reader"
+    assert client.post("/api/v1/auth/logout").status_code == 204
+    with TestClient(app, cookies={COOKIE: cookie}) as other:  # the old cookie, replayed
+        response = other.get(SESSION)
+    assert response.status_code == 200
+    assert response.json() == {"user": None}
+    with TestClient(app, cookies={COOKIE: "forged.value"}) as other:
+        assert other.get(SESSION).json() == {"user": None}
