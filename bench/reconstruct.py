@@ -1,7 +1,8 @@
 """Reconstruction benchmark: speed, memory and accuracy of the four surfaces.
 
     .venv/bin/python bench/reconstruct.py [--preset paper] [--seeds 0,1,2] [--noise default]
-                                          [--size WxH] [--work DIR] [--no-speed]
+                                          [--size WxH] [--physics-seed N] [--work DIR]
+                                          [--no-speed]
                                           [--no-accuracy] [--no-cli | --cli-only] [--repeat 3]
 
 For each seed: simulate a scan (worker.simulate; kept in --work to be reused), then
@@ -75,11 +76,26 @@ SURFACES = [
 ]
 
 
-def simulate(work: Path, *, seed: int, preset: str, noise: str, size) -> Path:
+def simulate(
+    work: Path, *, seed: int, preset: str, noise: str, size, physics_seed: int | None = None
+) -> Path:
+    """The scan of ``seed`` in ``work`` (simulated once); ``physics_seed``: the instrument's
+    physics drawn at random (`--physics random`, as bench/robustness.py's scans), else ideal."""
     tag = f"{preset}-{noise}-s{seed}" + (f"-{size[0]}x{size[1]}" if size else "")
+    if physics_seed is not None:
+        tag += f"-random{physics_seed}"
     out = work / tag
     if not (out / "gt").exists():
-        simulate_scan(out, seed=seed, preset=preset, noise=noise, size=size)
+        physics = "ideal" if physics_seed is None else "random"
+        simulate_scan(
+            out,
+            seed=seed,
+            preset=preset,
+            noise=noise,
+            size=size,
+            physics=physics,
+            physics_seed=physics_seed,
+        )
     return out
 
 
@@ -335,6 +351,12 @@ def main(argv=None) -> int:
     p.add_argument("--noise", default="default")
     p.add_argument("--seeds", default="0")
     p.add_argument("--size", default=None, help="WIDTHxHEIGHT (default: the preset's)")
+    p.add_argument(
+        "--physics-seed",
+        type=int,
+        default=None,
+        help="simulate with random instrument physics drawn from this seed (default: ideal)",
+    )
     p.add_argument("--work", default=None, help="folder for simulated scans (kept)")
     p.add_argument("--no-speed", action="store_true", help="accuracy table only")
     p.add_argument("--no-accuracy", action="store_true", help="speed table only")
@@ -355,9 +377,20 @@ def main(argv=None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     seeds = [int(s) for s in args.seeds.split(",")]
     per_seed: dict[int, list[dict]] = {}
-    print(f"preset {args.preset}, noise {args.noise}, seeds {seeds}, size {size or 'preset'}")
+    physics = "ideal" if args.physics_seed is None else f"random (seed {args.physics_seed})"
+    print(
+        f"preset {args.preset}, noise {args.noise}, seeds {seeds}, size {size or 'preset'},"
+        f" physics {physics}"
+    )
     for seed in seeds:
-        sim = simulate(work, seed=seed, preset=args.preset, noise=args.noise, size=size)
+        sim = simulate(
+            work,
+            seed=seed,
+            preset=args.preset,
+            noise=args.noise,
+            size=size,
+            physics_seed=args.physics_seed,
+        )
         if not args.no_speed:
             if not args.cli_only:
                 _print_speed(seed, *speed(sim / "bundle", args.repeat))
